@@ -1,0 +1,903 @@
+"""Shared geometry: affine factorisation with missing data, Procrustes fits, subspace affinities.
+
+Every method builds on these functions instead of writing its own copy. All of
+them are vectorised over frames (and, where it matters, over points and sticks)
+and check the shapes of their inputs.
+
+Notation
+--------
+``xy`` (P points, F frames, D) holds positions, NaN where missing. Stacking the
+coordinates of every frame gives the *measurement matrix* ``W`` of shape
+(F*D, P), one column per trajectory. A rigid body seen by an affine camera
+satisfies ``x_pf = A_f s_p + t_f`` with ``A_f`` (D, 3), ``t_f`` (D,), ``s_p`` (3,):
+its centred measurement matrix has rank 3 (Tomasi & Kanade 1992), its raw one
+rank 4. See ``docs/geometry.md`` for the derivations.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.linalg import solveh_banded
+
+from ._validation import as_float_array, check_random_state
+
+__all__ = [
+    "Factorization",
+    "predict_points",
+    "affine_factorization",
+    "metric_upgrade",
+    "fit_motions",
+    "orthogonal_procrustes_rows",
+    "similarity_fit_2d",
+    "low_rank_complete",
+    "estimate_rank",
+    "local_subspace_affinity",
+    "measurement_matrix",
+]
+
+
+# --------------------------------------------------------------------- checks
+def _check_xy(xy: Any, name: str = "xy") -> np.ndarray:
+    arr = as_float_array(xy, name, ndim=3, shape_text="(P points, F frames, D) with D = 2 or 3")
+    P, F, D = arr.shape
+    if D not in (2, 3):
+        raise ValueError(f"{name} must have shape (P points, F frames, D) with D = 2 or 3, got D = {D}")
+    if P < 1 or F < 1:
+        raise ValueError(f"{name} is empty (shape {arr.shape})")
+    missing = np.isnan(arr).any(axis=2)
+    if missing.any():
+        arr = arr.copy()
+        arr[missing] = np.nan  # a partly-NaN observation is missing as a whole
+    return arr
+
+
+def _check_rank(rank: Any, name: str = "rank") -> int:
+    try:
+        r = int(rank)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name} must be a positive integer, got {rank!r}") from None
+    if r != rank or r < 1:
+        raise ValueError(f"{name} must be a positive integer, got {rank!r}")
+    return r
+
+
+def measurement_matrix(xy: np.ndarray) -> np.ndarray:
+    """Stack positions (P, F, D) into the measurement matrix W of shape (F*D, P).
+
+    Row ``f*D + d`` holds coordinate ``d`` of frame ``f``; NaN stays NaN.
+    """
+    xy = np.asarray(xy, dtype=float)
+    P, F, D = xy.shape
+    return xy.transpose(1, 2, 0).reshape(F * D, P)
+
+
+# ----------------------------------------------------------------- prediction
+def predict_points(motions: Any, local: Any, labels: Any) -> np.ndarray:
+    """Positions predicted by per-stick affine motions.
+
+    Parameters
+    ----------
+    motions : array_like, shape (S, F, D, 4)
+        Affine motion ``[A | t]`` of each stick in each frame.
+    local : array_like, shape (P, 3)
+        Each point's coordinates in its stick's frame.
+    labels : array_like of int, shape (P,)
+        Stick of each point; -1 gives a row of NaN.
+
+    Returns
+    -------
+    ndarray, shape (P, F, D)
+        ``x_pf = A_{s(p) f} local_p + t_{s(p) f}``.
+    """
+    motions = as_float_array(motions, "motions", ndim=4, shape_text="(S sticks, F frames, D, 4)", allow_nan=True)
+    S, F, D, four = motions.shape
+    if four != 4:
+        raise ValueError(f"motions must have shape (S sticks, F frames, D, 4), got {motions.shape}")
+    local = as_float_array(local, "local", ndim=2, shape_text="(P points, 3)")
+    if local.shape[1] != 3:
+        raise ValueError(f"local must have shape (P points, 3), got {local.shape}")
+    P = local.shape[0]
+    labels = np.asarray(labels)
+    if labels.shape != (P,):
+        raise ValueError(f"labels must have shape ({P},) to match local, got {labels.shape}")
+    labels = labels.astype(np.int64)
+    if labels.size and (labels.min() < -1 or labels.max() >= S):
+        raise ValueError(f"labels must lie in -1 .. {S - 1} (S = {S} sticks), got {labels.min()} .. {labels.max()}")
+    out = np.full((P, F, D), np.nan)
+    ok = labels >= 0
+    if ok.any() and S:
+        M = motions[labels[ok]]  # (P', F, D, 4)
+        out[ok] = np.einsum("pfdk,pk->pfd", M[..., :3], local[ok]) + M[..., 3]
+    return out
+
+
+# -------------------------------------------------------------- factorisation
+@dataclass
+class Factorization:
+    """Result of :func:`affine_factorization`.
+
+    Attributes
+    ----------
+    motions : ndarray, shape (F, D, rank + 1)
+        Per-frame affine camera ``[A_f | t_f]``.
+    shape : ndarray, shape (P, rank)
+        Affine shape: ``x_pf = A_f shape_p + t_f``. Centred (mean zero over
+        points), columns orthogonal, in the balanced gauge of Tomasi & Kanade.
+    rms : float
+        Root-mean-square residual per observed coordinate.
+    n_iter : int
+        Iterations used (0 for the closed-form SVD of complete data).
+    converged : bool
+    n_observed : int
+        Number of observed (point, frame) entries.
+    """
+
+    motions: np.ndarray
+    shape: np.ndarray
+    rms: float
+    n_iter: int
+    converged: bool
+    n_observed: int = 0
+
+    @property
+    def rank(self) -> int:
+        return int(self.shape.shape[1])
+
+    def predict(self) -> np.ndarray:
+        """Positions (P, F, D) the factorisation predicts for every entry."""
+        A, t = self.motions[..., :-1], self.motions[..., -1]
+        return np.einsum("fdk,pk->pfd", A, self.shape) + t[None]
+
+    def log_likelihood(self) -> float:
+        """Gaussian log-likelihood of the observed coordinates at the ML noise level.
+
+        With ``N`` observed coordinates and residual sum of squares ``RSS``, the
+        ML variance is ``RSS / N`` and the log-likelihood ``-N/2 (log(2 pi RSS/N) + 1)``.
+        """
+        return gaussian_log_likelihood(self.rms ** 2 * self.n_observed_coords, self.n_observed_coords)
+
+    @property
+    def n_observed_coords(self) -> int:
+        return int(self.n_observed * self.motions.shape[1])
+
+
+def gaussian_log_likelihood(rss: float, n: int, *, floor: float = 1e-12) -> float:
+    """Gaussian log-likelihood of ``n`` residuals with sum of squares ``rss`` at the ML variance.
+
+    The variance is floored at ``floor`` so exact fits give a finite value.
+    """
+    if n <= 0:
+        return 0.0
+    var = max(float(rss) / n, floor)
+    return float(-0.5 * n * (np.log(2.0 * np.pi * var) + 1.0))
+
+
+def _frame_motions(S1: np.ndarray, X: np.ndarray, mask: np.ndarray, ridge: float) -> np.ndarray:
+    """Least-squares motions of every frame given the shape.
+
+    S1 (P, K) the homogeneous shape [S, 1]; X (F, P, D) with zeros where missing;
+    mask (F, P). Returns M^T of shape (F, K, D) with X_f ~ S1 M_f^T.
+    """
+    G = _damped_gram(np.einsum("fp,pk,pl->fkl", mask, S1, S1), ridge)
+    b = np.einsum("fp,pk,fpd->fkd", mask, S1, X)
+    return np.linalg.solve(G, b)
+
+
+def _damped_gram(G: np.ndarray, ridge: float) -> np.ndarray:
+    """Add ``ridge`` times each Gram matrix's mean eigenvalue (and a floor relative to the
+    largest one, so empty frames or points stay solvable) to the diagonals of G (..., K, K)."""
+    K = G.shape[-1]
+    scale = np.trace(G, axis1=-2, axis2=-1) / K
+    floor = 1e-12 * max(float(scale.max(initial=0.0)), 1e-300)
+    return G + (ridge * scale + floor)[..., None, None] * np.eye(K)
+
+
+def _point_shapes(A: np.ndarray, t: np.ndarray, X: np.ndarray, mask: np.ndarray, ridge: float) -> np.ndarray:
+    """Least-squares shape of every point given the motions (the other ALS half).
+
+    A (F, D, r), t (F, D), X (F, P, D), mask (F, P). Returns S of shape (P, r).
+    """
+    r = A.shape[2]
+    AtA = np.einsum("fdk,fdl->fkl", A, A)
+    G = _damped_gram(np.einsum("fp,fkl->pkl", mask, AtA), ridge)
+    b = np.einsum("fp,fdk,fpd->pk", mask, A, X - t[:, None, :])
+    return np.linalg.solve(G, b[..., None])[..., 0]
+
+
+def _rss(S1: np.ndarray, MT: np.ndarray, X: np.ndarray, mask: np.ndarray) -> float:
+    E = (X - np.einsum("pk,fkd->fpd", S1, MT)) * mask[..., None]
+    return float(np.sum(E * E))
+
+
+def affine_factorization(
+    xy: Any,
+    rank: int = 3,
+    *,
+    n_iter: int = 300,
+    tol: float = 1e-10,
+    solver: str = "auto",
+    ridge: float = 1e-9,
+    random_state: Any = None,
+) -> Factorization:
+    """Rank-``rank`` affine factorisation of trajectories with missing data.
+
+    Fits ``x_pf = A_f s_p + t_f`` (``A_f`` (D, rank), ``t_f`` (D,), ``s_p`` (rank,))
+    to the observed entries in the least-squares sense: the Tomasi-Kanade
+    factorisation of the centred measurement matrix, generalised to gaps.
+
+    * Complete data: closed form (translations are the per-frame centroids, the
+      rest is the truncated SVD of the centred measurement matrix).
+    * Missing data, ``solver="wiberg"``: variable projection / Wiberg. The motions
+      are eliminated frame by frame (a linear least-squares fit to the visible
+      points) and Levenberg-Marquardt runs on the shape alone, with the
+      Gauss-Newton matrix ``H = sum_f Q_f (x) A_f^T A_f`` (``Q_f`` the projector onto
+      the complement of frame f's design ``[S, 1]``); see ``docs/geometry.md``.
+      Converges in tens of iterations where alternating least squares crawls.
+    * ``solver="als"``: damped alternating least squares (cheaper per iteration;
+      ``"auto"`` uses it when P*rank > 900, where the Wiberg system gets large).
+
+    Parameters
+    ----------
+    xy : array_like, shape (P, F, D)
+        Positions with NaN gaps. Every point needs at least one observation.
+    rank : int
+        Rank of the centred measurement matrix (3 for a rigid body).
+    n_iter : int
+        Maximum iterations of the iterative solvers.
+    tol : float
+        Stop when the relative decrease of the residual is below ``tol``.
+    solver : {"auto", "wiberg", "als"}
+    ridge : float
+        Relative Tikhonov damping of the per-frame / per-point solves (keeps
+        frames with fewer than ``rank + 1`` visible points well posed).
+    random_state : None, int or Generator
+        Used only to break ties in the initialisation (jitter of rank-deficient starts).
+
+    Returns
+    -------
+    Factorization
+    """
+    xy = _check_xy(xy)
+    rank = _check_rank(rank)
+    if solver not in ("auto", "wiberg", "als"):
+        raise ValueError(f"solver must be 'auto', 'wiberg' or 'als', got {solver!r}")
+    P, F, D = xy.shape
+    obs = ~np.isnan(xy[..., 0])  # (P, F)
+    never = np.flatnonzero(~obs.any(axis=1))
+    if never.size:
+        raise ValueError(f"xy has {never.size} point(s) that are never observed (e.g. point {never[0]})")
+    if rank > min(P, F * D):
+        raise ValueError(f"rank must be at most min(P, F*D) = {min(P, F * D)}, got {rank}")
+    rng = check_random_state(random_state)
+    n_obs = int(obs.sum())
+    X = np.where(obs[..., None], xy, 0.0).transpose(1, 0, 2)  # (F, P, D)
+    mask = obs.T.astype(float)  # (F, P)
+
+    if obs.all():
+        t = X.mean(axis=1)  # (F, D)
+        Wc = (X - t[:, None, :]).transpose(0, 2, 1).reshape(F * D, P)
+        U, s, Vt = np.linalg.svd(Wc, full_matrices=False)
+        S = Vt[:rank].T * np.sqrt(s[:rank])
+        A = (U[:, :rank] * np.sqrt(s[:rank])).reshape(F, D, rank)
+        resid = float(np.sum(s[rank:] ** 2))
+        motions = np.concatenate([A, t[..., None]], axis=2)
+        rms = np.sqrt(resid / max(n_obs * D, 1))
+        return Factorization(motions=motions, shape=S, rms=float(rms), n_iter=0, converged=True, n_observed=n_obs)
+
+    # Start: translations from visible centroids, SVD of the zero-filled centred matrix.
+    cnt = np.maximum(mask.sum(axis=1), 1.0)
+    t0 = np.einsum("fp,fpd->fd", mask, X) / cnt[:, None]
+    Wc = ((X - t0[:, None, :]) * mask[..., None]).transpose(0, 2, 1).reshape(F * D, P)
+    U, s, Vt = np.linalg.svd(Wc, full_matrices=False)
+    S = Vt[:rank].T * np.sqrt(np.maximum(s[:rank], 1e-12))
+    scale = float(np.sqrt(np.mean(S ** 2))) + 1e-12
+    S = S + 1e-6 * scale * rng.standard_normal(S.shape)  # breaks exact rank deficiency of the start
+
+    # Wiberg builds F dense (P, P) projectors and a (P*rank)^2 system: keep both moderate.
+    use_wiberg = solver == "wiberg" or (solver == "auto" and P * rank <= 900 and F * P * P <= 2e7)
+    if use_wiberg:
+        S, n_done, converged = _wiberg(S, X, mask, n_iter=n_iter, tol=tol, ridge=ridge)
+    else:
+        S, n_done, converged = _als(S, X, mask, n_iter=n_iter, tol=tol, ridge=ridge)
+    S1 = np.column_stack([S, np.ones(P)])
+    MT = _frame_motions(S1, X, mask, ridge)
+    rss = _rss(S1, MT, X, mask)
+    motions = MT.transpose(0, 2, 1)  # (F, D, rank+1)
+    motions, S = _normalise_gauge(motions, S)
+    return Factorization(motions=motions, shape=S, rms=float(np.sqrt(rss / max(n_obs * D, 1))),
+                         n_iter=n_done, converged=converged, n_observed=n_obs)
+
+
+def _als(S: np.ndarray, X: np.ndarray, mask: np.ndarray, *, n_iter: int, tol: float, ridge: float
+         ) -> tuple[np.ndarray, int, bool]:
+    P = S.shape[0]
+    prev = np.inf
+    for it in range(1, n_iter + 1):
+        S1 = np.column_stack([S, np.ones(P)])
+        MT = _frame_motions(S1, X, mask, ridge)
+        A, t = MT[:, :-1, :].transpose(0, 2, 1), MT[:, -1, :]
+        S = _point_shapes(A, t, X, mask, ridge)
+        cost = _rss(np.column_stack([S, np.ones(P)]), MT, X, mask)
+        if np.isfinite(prev) and prev - cost <= tol * prev:
+            return S, it, True
+        prev = cost
+    return S, n_iter, False
+
+
+def _wiberg(S: np.ndarray, X: np.ndarray, mask: np.ndarray, *, n_iter: int, tol: float, ridge: float
+            ) -> tuple[np.ndarray, int, bool]:
+    """Levenberg-Marquardt on the shape with the motions projected out (variable projection)."""
+    P, r = S.shape
+    F = X.shape[0]
+
+    def evaluate(S: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+        S1 = np.column_stack([S, np.ones(P)])
+        MT = _frame_motions(S1, X, mask, ridge)  # (F, r+1, D)
+        E = (X - np.einsum("pk,fkd->fpd", S1, MT)) * mask[..., None]  # residuals (F, P, D)
+        return float(np.sum(E * E)), S1, MT, E
+
+    cost, S1, MT, E = evaluate(S)
+    lam = 1e-3
+    eye = np.eye(P * r)
+    converged = False
+    it = 0
+    for it in range(1, n_iter + 1):
+        # Q_f = D_f - Phi_f (Phi_f^T Phi_f)^-1 Phi_f^T, restricted to frame f's visible points.
+        Phi = mask[..., None] * S1[None]  # (F, P, r+1)
+        G = _damped_gram(np.einsum("fpk,fpl->fkl", Phi, Phi), ridge)
+        Ginv_PhiT = np.linalg.solve(G, Phi.transpose(0, 2, 1))  # (F, r+1, P)
+        Q = -(Phi @ Ginv_PhiT)  # (F, P, P)
+        idx = np.arange(P)
+        Q[:, idx, idx] += mask
+        A = MT[:, :r, :]  # (F, r, D) = A_f^T
+        B = A @ A.transpose(0, 2, 1)  # A_f^T A_f, (F, r, r)
+        # H[(p,k),(q,l)] = sum_f Q_f[p,q] B_f[k,l]: one matrix product over frames (BLAS).
+        H = (Q.reshape(F, P * P).T @ B.reshape(F, r * r)).reshape(P, P, r, r)
+        H = H.transpose(0, 2, 1, 3).reshape(P * r, P * r)
+        g = np.einsum("fpd,fkd->pk", E, A).reshape(P * r)
+        dscale = np.maximum(np.diag(H), 1e-12 * max(np.max(np.diag(H)), 1e-300))
+        improved = False
+        for _ in range(30):
+            step = np.linalg.solve(H + lam * (np.diag(dscale) + 1e-9 * dscale.mean() * eye), g)
+            S_new = S + step.reshape(P, r)
+            c_new, S1_new, MT_new, E_new = evaluate(S_new)
+            if c_new < cost:
+                improved = True
+                break
+            lam *= 10.0
+        if not improved:
+            converged = True  # no descent direction left: at a (local) minimum
+            break
+        rel = (cost - c_new) / max(cost, 1e-300)
+        S, cost, S1, MT, E = S_new, c_new, S1_new, MT_new, E_new
+        lam = max(lam / 10.0, 1e-12)
+        if rel <= tol or cost <= 1e-300:
+            converged = True
+            break
+    return S, it, converged
+
+
+def _normalise_gauge(motions: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centre the shape and put the pair in the balanced SVD gauge (up to signs, fixed too)."""
+    F, D, r1 = motions.shape
+    r = r1 - 1
+    A, t = motions[..., :r], motions[..., r]
+    mu = S.mean(axis=0)
+    t = t + A @ mu
+    Sc = S - mu
+    # A S^T = (A V diag(sv)^1/2 ...) : rotate so the product's SVD factors appear.
+    Am = A.reshape(F * D, r)
+    Qa, Ra = np.linalg.qr(Am)
+    Qs, Rs = np.linalg.qr(Sc)
+    U, sv, Vt = np.linalg.svd(Ra @ Rs.T)
+    sq = np.sqrt(np.maximum(sv, 0.0))
+    A_new = (Qa @ U) * sq
+    S_new = (Qs @ Vt.T) * sq
+    # Sign convention: each shape column's largest-magnitude entry is positive.
+    big = np.argmax(np.abs(S_new), axis=0)
+    sign = np.sign(S_new[big, np.arange(r)])
+    sign[sign == 0] = 1.0
+    S_new *= sign
+    A_new *= sign
+    return np.concatenate([A_new.reshape(F, D, r), t[..., None]], axis=2), S_new
+
+
+def low_rank_complete(xy: Any, rank: int, **kwargs: Any) -> np.ndarray:
+    """Fill the NaN entries of (P, F, D) positions by rank-``rank`` affine factorisation.
+
+    Parameters
+    ----------
+    xy : array_like, shape (P, F, D)
+    rank : int
+        Rank of the centred measurement matrix (e.g. 3 per rigid body).
+    **kwargs
+        Passed to :func:`affine_factorization`.
+
+    Returns
+    -------
+    ndarray, shape (P, F, D)
+        Observed entries unchanged, missing ones predicted.
+    """
+    xy = _check_xy(xy)
+    obs = ~np.isnan(xy[..., 0])
+    if obs.all():
+        return xy.copy()
+    fac = affine_factorization(xy, rank, **kwargs)
+    out = fac.predict()
+    out[obs] = xy[obs]
+    return out
+
+
+# ------------------------------------------------------------- metric upgrade
+def metric_upgrade(motions: Any, shape: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Upgrade an affine factorisation to a scaled-orthographic one.
+
+    Finds the 3x3 ``Q`` with ``A_f Q Q^T A_f^T = s_f^2 I`` for every frame (the
+    metric constraints of Tomasi & Kanade, with an unknown scale per frame):
+    with ``L = Q Q^T`` symmetric they are linear in L's 6 entries,
+    ``a_i L a_i^T - a_j L a_j^T = 0`` and ``a_i L a_j^T = 0`` for rows i != j of
+    ``A_f``. ``L`` is the null vector of the stacked constraints (smallest right
+    singular vector; its overall sign chosen so that L is mostly positive), made
+    positive definite by clipping its eigenvalues, and ``Q = L^(1/2)``. Each
+    ``A_f Q`` is then projected onto the nearest scaled matrix with orthonormal
+    rows (polar decomposition).
+
+    Parameters
+    ----------
+    motions : array_like, shape (F, D, 4)
+        Affine motions ``[A_f | t_f]`` (D = 2 or 3).
+    shape : array_like, shape (P, 3)
+        Affine shape.
+
+    Returns
+    -------
+    rotations : ndarray, shape (F, D, 3)
+        Orthonormal rows.
+    scales : ndarray, shape (F,)
+        Positive per-frame scales (mean 1: the overall scale goes into the shape).
+    translations : ndarray, shape (F, D)
+    shape : ndarray, shape (P, 3)
+        Metric shape: ``x_pf ~ scales_f rotations_f shape_p + translations_f``.
+    """
+    motions = as_float_array(motions, "motions", ndim=3, shape_text="(F frames, D, 4)", allow_nan=False)
+    F, D, k = motions.shape
+    if k != 4 or D not in (2, 3):
+        raise ValueError(f"motions must have shape (F frames, D, 4) with D = 2 or 3, got {motions.shape}")
+    shape = as_float_array(shape, "shape", ndim=2, shape_text="(P points, 3)", allow_nan=False)
+    if shape.shape[1] != 3:
+        raise ValueError(f"shape must have shape (P points, 3), got {shape.shape}")
+    A, t = motions[..., :3], motions[..., 3]
+    iu = np.triu_indices(3)
+
+    def coeffs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        # a L b^T as a linear function of L's upper triangle (off-diagonals count twice).
+        outer = 0.5 * (a[..., :, None] * b[..., None, :] + b[..., :, None] * a[..., None, :])
+        c = outer + np.swapaxes(outer, -1, -2) - outer * np.eye(3)
+        return c[..., iu[0], iu[1]]
+
+    rows = []
+    for i in range(D):
+        for j in range(i + 1, D):
+            rows.append(coeffs(A[:, i], A[:, j]))  # off-diagonal = 0
+        if i + 1 < D:
+            rows.append(coeffs(A[:, i], A[:, i]) - coeffs(A[:, i + 1], A[:, i + 1]))  # equal norms
+    C = np.concatenate(rows, axis=0)  # (F * n_constraints, 6)
+    _, _, Vt = np.linalg.svd(C, full_matrices=True)
+    l6 = Vt[-1]
+    L = np.zeros((3, 3))
+    L[iu] = l6
+    L = L + L.T - np.diag(np.diag(L))
+    w, V = np.linalg.eigh(L)
+    if w.sum() < 0:
+        w = -w[::-1]
+        V = V[:, ::-1]
+    w = np.maximum(w, 1e-9 * max(np.max(np.abs(w)), 1e-300))
+    Qm = V * np.sqrt(w)  # L = Q Q^T
+    AQ = A @ Qm  # (F, D, 3)
+    U, sv, Vt2 = np.linalg.svd(AQ, full_matrices=False)
+    R = U @ Vt2  # nearest orthonormal rows
+    scales = sv.mean(axis=1)
+    # x = A s + t = (A Q)(Q^-1 s) ~ scale R (Q^-1 s)
+    shape_m = np.linalg.solve(Qm, shape.T).T
+    mean_scale = float(np.mean(scales)) or 1.0
+    scales = scales / mean_scale
+    shape_m = shape_m * mean_scale
+    return R, scales, t.copy(), shape_m
+
+
+# ---------------------------------------------------------------- fit motions
+def fit_motions(
+    xy: Any,
+    local: Any,
+    labels: Any,
+    n_sticks: int,
+    *,
+    ridge: float = 1e-8,
+    smooth: float = 1e-3,
+) -> np.ndarray:
+    """Per-stick, per-frame affine motions that map a fixed local shape onto the visible points.
+
+    For each stick s the motions ``M_sf = [A_sf | t_sf]`` (D, 4) minimise::
+
+        sum_f sum_{p in s, visible} |x_pf - M_sf [l_p; 1]|^2
+          + lam_s * smooth * sum_f |M_s,f+1 - M_sf|^2 + lam_s * ridge * sum_f |M_sf|^2
+
+    where ``lam_s`` is one frame's typical data weight (the mean of
+    ``sum_{p in s} |[l_p; 1]|^2 / 4``), so ``smooth`` and ``ridge`` are relative. The
+    smoothness term couples neighbouring frames: frames where a stick has fewer
+    than 4 visible points (an under-determined fit) take the missing directions
+    from their neighbours (linear interpolation across a gap, constant beyond the
+    ends), while well-observed frames are hardly affected. The normal equations
+    are block-tridiagonal over frames (4x4 blocks) and are solved per stick as one
+    banded symmetric system (``scipy.linalg.solveh_banded``): no loop over frames.
+
+    Parameters
+    ----------
+    xy : array_like, shape (P, F, D)
+        Positions, NaN where missing.
+    local : array_like, shape (P, 3)
+        Each point's coordinates in its stick's frame (kept fixed).
+    labels : array_like of int, shape (P,)
+        Stick of each point, -1 for points on no stick (ignored).
+    n_sticks : int
+        Number of sticks S.
+    ridge, smooth : float
+        Relative Tikhonov and temporal-smoothness weights (>= 0).
+
+    Returns
+    -------
+    ndarray, shape (S, F, D, 4)
+    """
+    xy = _check_xy(xy)
+    P, F, D = xy.shape
+    local = as_float_array(local, "local", shape=(P, 3), shape_text=f"({P} points, 3)", allow_nan=False)
+    labels = np.asarray(labels)
+    if labels.shape != (P,):
+        raise ValueError(f"labels must have shape ({P},), got {labels.shape}")
+    labels = labels.astype(np.int64)
+    n_sticks = _check_rank(n_sticks, "n_sticks")
+    if labels.size and (labels.min() < -1 or labels.max() >= n_sticks):
+        raise ValueError(f"labels must lie in -1 .. {n_sticks - 1}, got {labels.min()} .. {labels.max()}")
+    if ridge < 0 or smooth < 0:
+        raise ValueError(f"ridge and smooth must be >= 0, got ridge={ridge!r}, smooth={smooth!r}")
+    if ridge == 0 and smooth == 0:
+        raise ValueError("ridge and smooth cannot both be 0 (under-determined frames would be singular)")
+    obs = ~np.isnan(xy[..., 0])
+    X = np.where(obs[..., None], xy, 0.0)
+    phi = np.column_stack([local, np.ones(P)])  # (P, 4)
+    onehot = (labels[:, None] == np.arange(n_sticks)[None, :]).astype(float)  # (P, S)
+    w = onehot[:, :, None] * obs[:, None, :]  # (P, S, F)
+    G = np.einsum("psf,pk,pl->sfkl", w, phi, phi)  # (S, F, 4, 4)
+    b = np.einsum("psf,pk,pfd->sfkd", w, phi, X)  # (S, F, 4, D)
+    sizes = onehot.sum(axis=0)
+    lam = np.einsum("ps,pk->s", onehot, phi * phi) / 4.0
+    lam = np.where(sizes > 0, lam, 1.0)
+    lam = np.maximum(lam, 1e-12 * max(lam.max(), 1e-300))
+    out = np.empty((n_sticks, F, D, 4))
+    # Upper banded storage of the symmetric (4F x 4F) block-tridiagonal matrix, bandwidth 4.
+    u = 4
+    n = 4 * F
+    for s in range(n_sticks):  # a handful of sticks; frames are vectorised inside
+        ls, lr = smooth * lam[s], ridge * lam[s]
+        deg = np.full(F, 2.0)
+        if F > 1:
+            deg[0] = deg[-1] = 1.0
+        else:
+            deg[:] = 0.0
+        blocks = G[s] + (lr + ls * deg)[:, None, None] * np.eye(4)
+        ab = np.zeros((u + 1, n))
+        for off in range(4):  # diagonal blocks: offset 0..3 within a block
+            # element (4f+i, 4f+i+off) -> ab[u - off, 4f+i+off]
+            i = np.arange(4 - off)
+            vals = blocks[:, i, i + off]  # (F, 4-off)
+            cols = (4 * np.arange(F)[:, None] + i[None, :] + off).ravel()
+            ab[u - off, cols] = vals.ravel()
+        if F > 1:
+            # off-diagonal blocks -ls * I: element (4f+i, 4(f+1)+i), offset 4
+            cols = (4 * np.arange(1, F)[:, None] + np.arange(4)[None, :]).ravel()
+            ab[0, cols] = -ls
+        rhs = b[s].reshape(n, D)
+        try:
+            sol = solveh_banded(ab, rhs, lower=False)
+        except np.linalg.LinAlgError:
+            ab[u] += 1e-9 * (np.abs(ab[u]).max() + 1.0)
+            sol = solveh_banded(ab, rhs, lower=False)
+        out[s] = sol.reshape(F, 4, D).transpose(0, 2, 1)
+    return out
+
+
+# ------------------------------------------------------------------ Procrustes
+def orthogonal_procrustes_rows(A: Any, B: Any, weights: Any = None) -> np.ndarray:
+    """Batched Procrustes for a matrix with orthonormal rows.
+
+    Minimises ``sum_n w_n |A[:, n] - R B[:, n]|^2`` over ``R`` (d, 3) with
+    orthonormal rows (``R R^T = I``, d <= 3). The solution is ``R = U V^T`` from
+    the SVD ``(A W B^T) = U diag(s) V^T`` (the rows of R span the best-aligned
+    directions; for d = 3 a reflection is allowed).
+
+    Parameters
+    ----------
+    A : array_like, shape (..., d, n)
+    B : array_like, shape (..., 3, n)
+    weights : array_like, shape (..., n) or (n,), optional
+        Non-negative weights (e.g. visibility).
+
+    Returns
+    -------
+    R : ndarray, shape (..., d, 3)
+    """
+    A = as_float_array(A, "A", allow_nan=False)
+    B = as_float_array(B, "B", allow_nan=False)
+    if A.ndim < 2 or B.ndim < 2:
+        raise ValueError(f"A and B must have shapes (..., d, n) and (..., 3, n), got {A.shape} and {B.shape}")
+    if B.shape[-2] != 3:
+        raise ValueError(f"B must have shape (..., 3, n), got {B.shape}")
+    d, n = A.shape[-2:]
+    if d > 3 or d < 1:
+        raise ValueError(f"A must have 1 to 3 rows (shape (..., d, n)), got d = {d}")
+    if B.shape[-1] != n:
+        raise ValueError(f"A and B must have the same number of columns n, got {n} and {B.shape[-1]}")
+    if weights is not None:
+        w = as_float_array(weights, "weights", allow_nan=False)
+        if w.shape[-1:] != (n,):
+            raise ValueError(f"weights must have shape (..., {n}), got {w.shape}")
+        if (w < 0).any():
+            raise ValueError("weights must be non-negative")
+        A = A * w[..., None, :]
+    M = np.einsum("...in,...jn->...ij", A, B)  # (..., d, 3)
+    U, _, Vt = np.linalg.svd(M, full_matrices=False)  # U (..., d, d), Vt (..., d, 3)
+    return U @ Vt
+
+
+def similarity_fit_2d(src: Any, dst: Any, mask: Any = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Batched least-squares 2D similarity (Umeyama) from ``src`` onto ``dst``.
+
+    Finds ``scale``, ``angle`` and ``translation`` minimising
+    ``sum_n m_n |dst_n - scale R(angle) src_n - translation|^2`` (a proper rotation,
+    no reflection). With centred point sets and ``a = sum m (src . dst)``,
+    ``b = sum m (src x dst)``: ``angle = atan2(b, a)``, ``scale = hypot(a, b) / sum m |src|^2``.
+
+    Parameters
+    ----------
+    src, dst : array_like, shape (..., n, 2)
+        Point sets, NaN allowed where the mask is False.
+    mask : array_like of bool, shape (..., n), optional
+        Visible points; by default those finite in both sets.
+
+    Returns
+    -------
+    scale : ndarray, shape (...)
+    angle : ndarray, shape (...)
+        Radians, counter-clockwise.
+    translation : ndarray, shape (..., 2)
+        NaN everywhere for problems with fewer than 2 visible points or a
+        degenerate (single-location) ``src``.
+    """
+    src = as_float_array(src, "src")
+    dst = as_float_array(dst, "dst")
+    if src.ndim < 2 or src.shape[-1] != 2:
+        raise ValueError(f"src must have shape (..., n, 2), got {src.shape}")
+    if dst.shape != src.shape:
+        raise ValueError(f"dst must have the same shape as src {src.shape}, got {dst.shape}")
+    finite = np.isfinite(src).all(-1) & np.isfinite(dst).all(-1)
+    if mask is None:
+        m = finite
+    else:
+        m = np.asarray(mask)
+        if m.shape != src.shape[:-1]:
+            raise ValueError(f"mask must have shape {src.shape[:-1]}, got {m.shape}")
+        m = m.astype(bool) & finite
+    wt = m.astype(float)
+    s0 = np.where(m[..., None], src, 0.0)
+    d0 = np.where(m[..., None], dst, 0.0)
+    cnt = wt.sum(-1)
+    safe = np.maximum(cnt, 1.0)[..., None]
+    ms = s0.sum(-2) / safe
+    md = d0.sum(-2) / safe
+    sc = (s0 - ms[..., None, :]) * wt[..., None]
+    dc = (d0 - md[..., None, :]) * wt[..., None]
+    a = np.sum(sc * dc, axis=(-1, -2))
+    b = np.sum(sc[..., 0] * dc[..., 1] - sc[..., 1] * dc[..., 0], axis=-1)
+    var = np.sum(sc * sc, axis=(-1, -2))
+    bad = (cnt < 2) | (var <= 1e-300)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        angle = np.arctan2(b, a)
+        scale = np.hypot(a, b) / var
+    c, s = np.cos(angle), np.sin(angle)
+    rot_ms = np.stack([c * ms[..., 0] - s * ms[..., 1], s * ms[..., 0] + c * ms[..., 1]], axis=-1)
+    trans = md - scale[..., None] * rot_ms
+    scale = np.where(bad, np.nan, scale)
+    angle = np.where(bad, np.nan, angle)
+    trans = np.where(bad[..., None], np.nan, trans)
+    return scale, angle, trans
+
+
+# -------------------------------------------------------- rank and affinities
+def estimate_rank(
+    singular_values: Any,
+    n_samples: int,
+    *,
+    kappa: float = 1e-3,
+    max_rank: int | None = None,
+) -> int:
+    """Effective rank by the model selection of Yan & Pollefeys (ECCV 2006).
+
+    ``r = argmin_r  s_{r+1}^2 / sum_{k<=r} s_k^2 + kappa * r``: the share of
+    energy the next direction would add, traded against a per-dimension
+    penalty ``kappa``. The first term is scale-free, so ``kappa`` is a relative
+    noise-energy threshold: a direction whose energy is below roughly ``kappa``
+    times the energy already explained is treated as noise.
+
+    Parameters
+    ----------
+    singular_values : array_like, shape (k,)
+        Singular values in any order (sorted here).
+    n_samples : int
+        Number of samples (columns) the singular values came from; the rank is
+        at most ``min(k, n_samples)``.
+    kappa : float
+        Penalty per dimension (> 0).
+    max_rank : int, optional
+        Upper bound on the rank.
+
+    Returns
+    -------
+    int
+        The rank, at least 1 (0 only when every singular value is 0).
+    """
+    s = as_float_array(singular_values, "singular_values", ndim=1, allow_nan=False)
+    if (s < 0).any():
+        raise ValueError("singular_values must be non-negative")
+    n_samples = _check_rank(n_samples, "n_samples")
+    if not kappa > 0:
+        raise ValueError(f"kappa must be > 0, got {kappa!r}")
+    s = np.sort(s)[::-1]
+    if s.size == 0 or s[0] <= 0:
+        return 0
+    top = min(s.size, n_samples)
+    if max_rank is not None:
+        top = min(top, _check_rank(max_rank, "max_rank"))
+    e = s ** 2
+    csum = np.cumsum(e)
+    r = np.arange(1, top + 1)
+    nxt = np.append(e, 0.0)[r]  # s_{r+1}^2 (0 past the end)
+    crit = nxt / csum[r - 1] + kappa * r
+    return int(r[np.argmin(crit)])
+
+
+def _neighbour_indices(X: np.ndarray, k: int) -> np.ndarray:
+    """Indices (P, k+1) of each column's k nearest columns by angle (itself first)."""
+    cos = np.abs(X.T @ X)  # unit columns; the sign of a direction is irrelevant
+    np.fill_diagonal(cos, np.inf)
+    return np.argsort(-cos, axis=1, kind="stable")[:, : k + 1]
+
+
+def local_subspace_affinity(
+    xy: Any,
+    *,
+    n_neighbors: int | None = None,
+    rank: int | str = "auto",
+    project_rank: int | str = "auto",
+    kappa: float = 1e-3,
+    max_local_rank: int = 4,
+    completion_rank: int | None = None,
+    return_info: bool = False,
+) -> np.ndarray | tuple[np.ndarray, dict[str, Any]]:
+    """Local subspace affinity of Yan & Pollefeys (ECCV 2006) between trajectories.
+
+    1. Missing entries are filled by low-rank completion (:func:`low_rank_complete`).
+    2. The measurement matrix W (F*D, P) is projected onto its ``project_rank``
+       leading left singular vectors (noise removal; ``"auto"``: :func:`estimate_rank`)
+       and every trajectory is normalised to unit length (the direction, not the
+       magnitude, of a trajectory says which motion subspace it lies in).
+    3. Each trajectory's local subspace is spanned by it and its ``n_neighbors``
+       nearest trajectories (by angle), with rank by model selection
+       (``rank="auto"``, at most ``max_local_rank``) or fixed.
+    4. ``affinity_ij = exp(-sum_m sin^2 theta_m)`` over the principal angles
+       ``theta_m`` between the local subspaces of i and j.
+
+    With orthonormal bases ``B_i`` of ranks d_i, d_j:
+    ``sum_m sin^2 theta_m = min(d_i, d_j) - |B_i^T B_j|_F^2``, computed for every pair at
+    once from the projectors (vectorised; equal to ``scipy.linalg.subspace_angles``).
+
+    Parameters
+    ----------
+    xy : array_like, shape (P, F, D)
+    n_neighbors : int, optional
+        Neighbours per local subspace; default ``max_local_rank`` (a rigid body's
+        trajectories span 4 dimensions, so 4 neighbours and the point itself
+        span it). Must be < P.
+    rank : "auto" or int
+        Rank of every local subspace.
+    project_rank : "auto" or int
+        Dimension of the projection in step 2 (capped at min(F*D, P)).
+    kappa : float
+        Penalty of the rank model selection.
+    max_local_rank : int
+        Upper bound of the automatic local rank.
+    completion_rank : int, optional
+        Rank used to fill missing data (default: estimated from the fully
+        observed frames, at least 3 and at most ``P - 1``).
+    return_info : bool
+        Also return a dict with the projection rank, local ranks and neighbours.
+
+    Returns
+    -------
+    affinity : ndarray, shape (P, P)
+        Symmetric, in (0, 1], ones on the diagonal.
+    info : dict, optional
+    """
+    xy = _check_xy(xy)
+    P, F, D = xy.shape
+    if P < 2:
+        raise ValueError(f"local_subspace_affinity needs at least 2 trajectories, got {P}")
+    if n_neighbors is None:
+        n_neighbors = max_local_rank
+    n_neighbors = _check_rank(n_neighbors, "n_neighbors")
+    n_neighbors = min(n_neighbors, P - 1)
+    obs = ~np.isnan(xy[..., 0])
+    if not obs.all():
+        if completion_rank is None:
+            completion_rank = _completion_rank(xy, kappa)
+        xy = low_rank_complete(xy, min(completion_rank, P - 1, F * D - 1) or 1)
+    W = measurement_matrix(xy)  # (F*D, P)
+    U, s, _ = np.linalg.svd(W, full_matrices=False)
+    if project_rank == "auto":
+        K = estimate_rank(s, P, kappa=kappa)
+    else:
+        K = _check_rank(project_rank, "project_rank")
+    K = max(1, min(K, s.size))
+    X = U[:, :K].T @ W  # (K, P)
+    norms = np.linalg.norm(X, axis=0)
+    X = X / np.where(norms > 0, norms, 1.0)
+    nbrs = _neighbour_indices(X, n_neighbors)  # (P, k+1)
+    local = X[:, nbrs].transpose(1, 0, 2)  # (P, K, k+1)
+    Ul, sl, _ = np.linalg.svd(local, full_matrices=False)  # (P, K, m), (P, m)
+    m = sl.shape[1]
+    if rank == "auto":
+        top = min(max_local_rank, m)
+        e = sl ** 2
+        csum = np.cumsum(e, axis=1)
+        r = np.arange(1, top + 1)
+        nxt = np.concatenate([e, np.zeros((P, 1))], axis=1)[:, r]
+        crit = nxt / np.maximum(csum[:, r - 1], 1e-300) + kappa * r
+        ranks = r[np.argmin(crit, axis=1)]
+    else:
+        ranks = np.full(P, min(_check_rank(rank), m))
+    keep = np.arange(m)[None, :] < ranks[:, None]  # (P, m)
+    B = Ul * keep[:, None, :]
+    proj = np.einsum("pkm,plm->pkl", B, B).reshape(P, K * K)
+    overlap = proj @ proj.T  # |B_i^T B_j|_F^2
+    dmin = np.minimum(ranks[:, None], ranks[None, :])
+    sin2 = np.clip(dmin - overlap, 0.0, None)
+    aff = np.exp(-sin2)
+    aff = 0.5 * (aff + aff.T)
+    np.fill_diagonal(aff, 1.0)
+    if return_info:
+        return aff, {"project_rank": int(K), "local_ranks": ranks, "neighbors": nbrs, "singular_values": s}
+    return aff
+
+
+def _completion_rank(xy: np.ndarray, kappa: float) -> int:
+    """Rank of the centred measurement matrix, estimated from the frames where every point is seen."""
+    P, F, D = xy.shape
+    obs = ~np.isnan(xy[..., 0])
+    full = obs.all(axis=0)
+    if full.sum() >= 2:
+        sub = xy[:, full]
+    else:
+        # No complete frame: use the points seen in every frame of the best-covered half.
+        order = np.argsort(-obs.sum(axis=0))
+        frames = order[: max(2, F // 2)]
+        pts = obs[:, frames].all(axis=1)
+        if pts.sum() < 4:
+            return min(3, P - 1)
+        sub = xy[np.ix_(pts, frames)]
+    Wc = measurement_matrix(sub)
+    Wc = Wc - Wc.mean(axis=1, keepdims=True)
+    s = np.linalg.svd(Wc, compute_uv=False)
+    r = estimate_rank(s, sub.shape[0], kappa=kappa)
+    return int(max(3, min(r, P - 1)))
