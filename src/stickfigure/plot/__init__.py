@@ -1,0 +1,1 @@
+"""Figures and animations: generic drawing here, one module per method's diagnostics."""
