@@ -234,13 +234,14 @@ def test_orthogonal_procrustes_rows_batched_known_answer():
         A = R3[:, :d] @ B
         R = g.orthogonal_procrustes_rows(A, B)
         assert R.shape == (7, d, 3)
-        np.testing.assert_allclose(R, R3[:, :d], atol=1e-10)
+        # d = 3 is closed form; d = 2 is iterative (linear convergence)
+        np.testing.assert_allclose(R, R3[:, :d], atol=1e-10 if d == 3 else 1e-5)
     # weights: the zero-weight outliers are ignored
     A = R3[:, :2] @ B
     A[..., :3] += 100.0
     w = np.ones(20)
     w[:3] = 0
-    np.testing.assert_allclose(g.orthogonal_procrustes_rows(A, B, w), R3[:, :2], atol=1e-10)
+    np.testing.assert_allclose(g.orthogonal_procrustes_rows(A, B, w), R3[:, :2], atol=1e-5)
 
 
 @settings(max_examples=30, deadline=None)

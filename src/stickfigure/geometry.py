@@ -610,13 +610,23 @@ def fit_motions(
 
 
 # ------------------------------------------------------------------ Procrustes
-def orthogonal_procrustes_rows(A: Any, B: Any, weights: Any = None) -> np.ndarray:
+def orthogonal_procrustes_rows(A: Any, B: Any, weights: Any = None, *, n_iter: int = 200,
+                               tol: float = 1e-12) -> np.ndarray:
     """Batched Procrustes for a matrix with orthonormal rows.
 
     Minimises ``sum_n w_n |A[:, n] - R B[:, n]|^2`` over ``R`` (d, 3) with
-    orthonormal rows (``R R^T = I``, d <= 3). The solution is ``R = U V^T`` from
-    the SVD ``(A W B^T) = U diag(s) V^T`` (the rows of R span the best-aligned
-    directions; for d = 3 a reflection is allowed).
+    orthonormal rows (``R R^T = I``, d <= 3).
+
+    For d = 3 the answer is the polar factor ``R = U V^T`` of the SVD
+    ``A W B^T = U diag(s) V^T`` (a reflection is allowed). For d < 3 that SVD
+    solution is exact only when ``B W B^T`` is isotropic, because the term
+    ``|R B|^2`` then depends on R. The exact minimiser comes from the classic
+    completion algorithm for projection Procrustes (Green & Gower): treat the
+    3 - d missing rows of A as unknowns ``Z``; alternately set ``Z`` to the model's
+    prediction (the last rows of ``Q B`` for the current 3x3 orthogonal ``Q``) and
+    ``Q`` to the polar factor of ``[A; Z] W B^T``. Each step cannot increase the
+    objective; it starts from the SVD solution and runs, vectorised over the
+    batch, until the largest relative change is below ``tol``.
 
     Parameters
     ----------
@@ -624,6 +634,10 @@ def orthogonal_procrustes_rows(A: Any, B: Any, weights: Any = None) -> np.ndarra
     B : array_like, shape (..., 3, n)
     weights : array_like, shape (..., n) or (n,), optional
         Non-negative weights (e.g. visibility).
+    n_iter : int
+        Maximum completion iterations (d < 3 only).
+    tol : float
+        Relative tolerance on the objective.
 
     Returns
     -------
@@ -646,10 +660,53 @@ def orthogonal_procrustes_rows(A: Any, B: Any, weights: Any = None) -> np.ndarra
             raise ValueError(f"weights must have shape (..., {n}), got {w.shape}")
         if (w < 0).any():
             raise ValueError("weights must be non-negative")
-        A = A * w[..., None, :]
-    M = np.einsum("...in,...jn->...ij", A, B)  # (..., d, 3)
-    U, _, Vt = np.linalg.svd(M, full_matrices=False)  # U (..., d, d), Vt (..., d, 3)
-    return U @ Vt
+        sw = np.sqrt(w)[..., None, :]
+        A, B = A * sw, B * sw
+    try:
+        batch = np.broadcast_shapes(A.shape[:-2], B.shape[:-2])
+    except ValueError:
+        raise ValueError(f"A {A.shape} and B {B.shape} have incompatible batch shapes") from None
+    A = np.broadcast_to(A, batch + A.shape[-2:])
+    B = np.broadcast_to(B, batch + B.shape[-2:])
+    M = A @ np.swapaxes(B, -1, -2)  # (..., d, 3)
+    U, _, Vt = np.linalg.svd(M, full_matrices=False)
+    R = U @ Vt
+    if d == 3:
+        return R
+    # Complete R to an orthogonal 3x3 Q (rows orthogonal to R), then iterate.
+    Q = _complete_rows(R)
+    BBt = B @ np.swapaxes(B, -1, -2)
+
+    def objective(R: np.ndarray) -> np.ndarray:
+        E = A - R @ B
+        return np.sum(E * E, axis=(-1, -2))
+
+    prev = objective(R)
+    for _ in range(n_iter):
+        Z = (Q @ B)[..., d:, :]  # predicted missing rows
+        full = np.concatenate([A, Z], axis=-2)
+        U, _, Vt = np.linalg.svd(full @ np.swapaxes(B, -1, -2))
+        Q = U @ Vt
+        R = Q[..., :d, :]
+        cur = objective(R)
+        scale = np.maximum(np.abs(prev), np.trace(BBt, axis1=-2, axis2=-1) + 1e-300)
+        if np.all(prev - cur <= tol * scale):
+            break
+        prev = cur
+    return R
+
+
+def _complete_rows(R: np.ndarray) -> np.ndarray:
+    """Extend (..., d, 3) orthonormal rows to a (..., 3, 3) orthogonal matrix."""
+    d = R.shape[-2]
+    if d == 2:
+        return np.concatenate([R, np.cross(R[..., 0, :], R[..., 1, :])[..., None, :]], axis=-2)
+    # d == 1: the SVD of the row gives an orthonormal basis whose first vector is +-R.
+    _, _, Vt = np.linalg.svd(R)
+    Vt = Vt.copy()
+    sign = np.sign(np.sum(Vt[..., 0, :] * R[..., 0, :], axis=-1))
+    Vt[..., 0, :] *= np.where(sign == 0, 1.0, sign)[..., None]
+    return Vt
 
 
 def similarity_fit_2d(src: Any, dst: Any, mask: Any = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
