@@ -61,8 +61,8 @@ def plot_mutual_information(skeleton: Skeleton, ax: Any = None, *, names: list[s
     labels = _names(skeleton, names)
     if ax is None:
         _, ax = plt.subplots(figsize=(4, 3.6))
-    cmap = plt.get_cmap("gray" if which == "mutual_information" else "gray_r").copy()
-    cmap.set_bad("#c6dbef")  # the undefined diagonal, in a colour outside the gray scale
+    # The undefined diagonal in a colour outside the gray scale.
+    cmap = plt.get_cmap("gray" if which == "mutual_information" else "gray_r").with_extremes(bad="#c6dbef")
     im = ax.imshow(np.ma.masked_invalid(M), cmap=cmap, interpolation="nearest")
     ax.figure.colorbar(im, ax=ax, fraction=0.046, pad=0.04,
                        label="mutual information (nats)" if which == "mutual_information" else "H(relative motion)")
