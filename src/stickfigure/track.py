@@ -1,0 +1,654 @@
+"""From a video to point trajectories: a KLT feature tracker (OpenCV).
+
+The papers' real inputs were KLT feature tracks. :func:`track_video` produces
+them from any video OpenCV can decode:
+
+1. **Detection.** Shi–Tomasi corners (``cv2.goodFeaturesToTrack``) inside the
+   region of interest, at least ``min_distance`` apart.
+2. **Tracking.** Pyramidal Lucas–Kanade (``cv2.calcOpticalFlowPyrLK``) from each
+   frame to the next, with a **forward–backward check** (Kalal et al. 2010): each
+   point is tracked forward, the result tracked back, and the point is lost when it
+   does not come back to within ``fb_threshold`` pixels of where it started (or
+   LK reports failure, or it leaves the region of interest).
+3. **Re-detection.** Every ``redetect_every`` frames, while fewer than
+   ``max_points`` tracks are alive, new corners are detected where no live
+   track is (a disc of radius ``min_distance`` around every live point is
+   masked out). A re-detected feature always starts a *new* trajectory: a lost
+   track is never resurrected, so a trajectory is observed on one contiguous run
+   of frames and NaN outside it.
+4. **Shot cuts.** A cut (an edited video jumping to another scene) ends every
+   live track: it is detected when the Bhattacharyya distance between the colour
+   histograms of consecutive frames (hue–saturation and value, on a small copy
+   of the frame) exceeds ``cut_threshold``. Within a shot that distance stays
+   small even under fast camera motion, while a cut changes the whole
+   histogram. The first frame of every shot is in ``meta["shots"]``.
+5. **Clean-up.** Tracks shorter than ``min_length`` and *static* tracks are
+   removed. A track is static when its path, after removing the dominant
+   (camera/background) motion, stays within ``min_motion`` of the image
+   diagonal. The dominant motion between consecutive frames is the similarity
+   transform (``cv2.estimateAffinePartial2D``, RANSAC) that most tracks agree on;
+   with a fixed camera it is the identity and the test is plain "did not move".
+   Set ``stabilize=False`` to measure motion in image coordinates instead (for a
+   subject that fills most of the frame and would otherwise be taken for the
+   background).
+
+Default thresholds are relative, so they adapt to the video: ``min_distance``
+is a fraction of sqrt(area) of the region of interest, ``min_motion`` a fraction
+of its diagonal, ``min_length`` a fraction of the number of frames tracked (or
+an absolute number of frames). See ``docs/tracking.md``.
+
+Choosing what to learn from
+---------------------------
+Skeleton methods need points that are observed over a good part of the frames
+they are fitted to. :func:`best_window` picks the frame window and the points
+that hold the most observations (points observed in at least ``coverage`` of the
+window, times the window's length), keeps at most ``max_points`` of them spread
+over the image, and never crosses a shot cut. :func:`stickfigure.pipeline.learn`
+uses it on tracked videos.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .trajectories import Trajectories
+
+__all__ = ["track_video", "best_window", "VIDEO_SUFFIXES"]
+
+#: File suffixes treated as videos by :func:`stickfigure.pipeline.learn`.
+VIDEO_SUFFIXES = frozenset({".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv", ".flv",
+                            ".ogv", ".3gp", ".ts", ".mts"})
+
+
+def _cv2() -> Any:
+    import cv2
+
+    return cv2
+
+
+def _open_video(path: str | os.PathLike) -> tuple[Any, Path]:
+    cv2 = _cv2()
+    p = Path(path).expanduser()
+    if not p.exists():
+        raise ValueError(f"video not found: {p}")
+    if p.is_dir():
+        raise ValueError(f"video path is a directory, not a video file: {p}")
+    cap = cv2.VideoCapture(str(p))
+    if not cap.isOpened():
+        raise ValueError(f"cannot read video {p}: OpenCV could not open it (unknown format or corrupt file)")
+    return cap, p.resolve()
+
+
+def _check_roi(roi: Any, width: int, height: int) -> tuple[int, int, int, int]:
+    if roi is None:
+        return 0, 0, width, height
+    try:
+        x, y, w, h = (int(round(float(v))) for v in roi)
+    except (TypeError, ValueError):
+        raise ValueError(f"roi must be (x, y, width, height) in pixels, got {roi!r}") from None
+    x0, y0 = max(x, 0), max(y, 0)
+    x1, y1 = min(x + w, width), min(y + h, height)
+    if w <= 0 or h <= 0 or x1 - x0 < 8 or y1 - y0 < 8:
+        raise ValueError(f"roi {roi!r} leaves less than 8x8 pixels inside the {width}x{height} video")
+    return x0, y0, x1 - x0, y1 - y0
+
+
+def _relative(value: Any, scale: float, name: str) -> float:
+    """A threshold given as a fraction of ``scale`` (value < 1) or as an absolute value (>= 1)."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None
+    if not np.isfinite(v) or v < 0:
+        raise ValueError(f"{name} must be >= 0, got {value!r}")
+    return v * scale if v < 1 else v
+
+
+class _CutDetector:
+    """Shot-cut test on colour histograms of consecutive frames (see the module docstring)."""
+
+    def __init__(self, threshold: float) -> None:
+        self.threshold = float(threshold)
+        self.prev: tuple[np.ndarray, np.ndarray] | None = None
+
+    def __call__(self, frame: np.ndarray) -> bool:
+        cv2 = _cv2()
+        h, w = frame.shape[:2]
+        small = cv2.resize(frame, (160, max(1, int(round(160 * h / w)))), interpolation=cv2.INTER_AREA)
+        hsv = cv2.cvtColor(small, cv2.COLOR_BGR2HSV)
+        hs = cv2.calcHist([hsv], [0, 1], None, [16, 16], [0, 180, 0, 256])
+        v = cv2.calcHist([hsv], [2], None, [32], [0, 256])
+        cv2.normalize(hs, hs, 1, 0, cv2.NORM_L1)
+        cv2.normalize(v, v, 1, 0, cv2.NORM_L1)
+        cut = False
+        if self.prev is not None and self.threshold > 0:
+            # Grey videos have an empty hue-saturation histogram: the value histogram decides.
+            d = max(cv2.compareHist(self.prev[0], hs, cv2.HISTCMP_BHATTACHARYYA),
+                    cv2.compareHist(self.prev[1], v, cv2.HISTCMP_BHATTACHARYYA))
+            cut = d > self.threshold
+        self.prev = (hs, v)
+        return cut
+
+
+def track_video(
+    path: str | os.PathLike,
+    *,
+    roi: tuple[int, int, int, int] | None = None,
+    start: int = 0,
+    stop: int | None = None,
+    max_points: int = 500,
+    progress: bool = False,
+    min_length: float = 0.05,
+    min_motion: float = 0.01,
+    min_distance: float = 0.01,
+    quality: float = 0.01,
+    block_size: int = 7,
+    window: int = 15,
+    levels: int = 3,
+    fb_threshold: float = 1.0,
+    min_ncc: float = 0.8,
+    redetect_every: int = 5,
+    cut_threshold: float = 0.3,
+    stabilize: bool = True,
+) -> Trajectories:
+    """Track corner features through a video.
+
+    Parameters
+    ----------
+    path : str or path-like
+        Any video OpenCV can decode.
+    roi : (x, y, width, height), optional
+        Region of interest in pixels: features are detected in it and a track
+        ends when it leaves it. Positions stay in full-frame pixel coordinates.
+    start, stop : int
+        Frame range ``[start, stop)`` to track (``stop=None``: to the end).
+    max_points : int
+        Most tracks alive at once.
+    progress : bool
+        Show a progress bar over frames.
+    min_length : float
+        Shortest track kept: a fraction of the frames tracked (< 1; at least 10
+        frames, at most all of them) or a number of frames (>= 1).
+    min_motion : float
+        Tracks whose stabilised path fits in a box of diagonal smaller than this
+        are static and removed: a fraction of the region's diagonal (< 1) or
+        pixels (>= 1). 0 keeps static tracks.
+    min_distance : float
+        Least distance between features: a fraction of sqrt(area) of the
+        region (< 1; at least 3 px) or pixels (>= 1).
+    quality : float
+        Shi–Tomasi quality level (fraction of the best corner's response).
+    block_size : int
+        Corner detector neighbourhood in pixels.
+    window : int
+        Lucas–Kanade window size in pixels.
+    levels : int
+        Pyramid levels above the full resolution.
+    fb_threshold : float
+        Forward–backward error (pixels) above which a point is lost.
+    min_ncc : float
+        Least normalised cross-correlation between a point's neighbourhood
+        (side ``2 * (window // 4) + 1``) now and when it was detected, best over
+        in-plane rotations (15-degree steps); below it the point is lost. Catches points sliding along an occluding edge, which
+        the forward-backward check lets through. -1 disables the test.
+    redetect_every : int
+        Frames between re-detections.
+    cut_threshold : float
+        Histogram distance (0..1) above which consecutive frames are a shot
+        cut; 0 disables cut detection.
+    stabilize : bool
+        Measure static-ness after removing the dominant motion (camera pan);
+        ``False`` measures it in image coordinates.
+
+    Returns
+    -------
+    Trajectories
+        ``xy`` (P, F, 2) in pixels (y down), NaN outside each track's lifetime,
+        with ``image_size``, ``frame_rate``, ``video`` (absolute path) and
+        ``meta``: ``frame_offset`` (= ``start``), ``shots`` (first frame of
+        each shot, relative to ``start``), ``roi``, ``tracker`` (the settings)
+        and ``tracking`` (counts: detected, too short, static, kept, seconds).
+
+    Raises
+    ------
+    ValueError
+        Unreadable, missing or empty video, a frame range outside it, a bad
+        parameter, or no track surviving the clean-up.
+    """
+    import time
+
+    cv2 = _cv2()
+    from tqdm.auto import tqdm
+
+    start = int(start)
+    if start < 0:
+        raise ValueError(f"start must be >= 0, got {start}")
+    if stop is not None:
+        stop = int(stop)
+        if stop <= start + 1:
+            raise ValueError(f"stop must be at least start + 2 (= {start + 2}) to track 2 frames, got {stop}")
+    max_points = int(max_points)
+    if max_points < 1:
+        raise ValueError(f"max_points must be >= 1, got {max_points}")
+    redetect_every = max(1, int(redetect_every))
+    window = int(window)
+    if window < 3:
+        raise ValueError(f"window must be >= 3 pixels, got {window}")
+    fb_threshold = float(fb_threshold)
+    if not fb_threshold > 0:
+        raise ValueError(f"fb_threshold must be > 0 pixels, got {fb_threshold}")
+
+    t0 = time.perf_counter()
+    cap, vpath = _open_video(path)
+    try:
+        width = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
+        height = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        n_total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+        for i in range(start):  # grab() skips without decoding; more reliable than seeking
+            if not cap.grab():
+                raise ValueError(f"start frame {start} is beyond the end of {vpath.name} ({i} frames)")
+        ok, frame = cap.read()
+        if not ok or frame is None:
+            if start:
+                raise ValueError(f"start frame {start} is beyond the end of {vpath.name}")
+            raise ValueError(f"cannot read video {vpath}: it has no decodable frames")
+        height, width = frame.shape[:2]
+        rx, ry, rw, rh = _check_roi(roi, width, height)
+        md = max(3.0, _relative(min_distance, float(np.sqrt(rw * rh)), "min_distance"))
+        motion_px = _relative(min_motion, float(np.hypot(rw, rh)), "min_motion")
+        roi_mask = np.zeros((height, width), np.uint8)
+        roi_mask[ry:ry + rh, rx:rx + rw] = 255
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * int(md) + 1, 2 * int(md) + 1))
+        lk = dict(winSize=(window, window), maxLevel=int(levels),
+                  criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+        cuts = _CutDetector(cut_threshold)
+
+        expected = None
+        if n_total > 0:
+            expected = max(0, (min(stop, n_total) if stop is not None else n_total) - start)
+        bar = tqdm(total=expected, disable=not progress, unit="frame", desc=f"tracking {vpath.name}",
+                   leave=False)
+
+        rec_f: list[np.ndarray] = []  # per frame: frame index, track ids, positions
+        rec_id: list[np.ndarray] = []
+        rec_xy: list[np.ndarray] = []
+        steps: list[np.ndarray] = []  # (F-1) dominant similarity from frame f to f+1, 2x3
+        shots = [0]
+        ids = np.zeros(0, np.int64)
+        pts = np.zeros((0, 2), np.float32)
+        next_id = 0
+        n_fb_lost = 0
+        n_ncc_lost = 0
+        ncc_radius = max(2, window // 4)
+        tmpl = np.zeros((0, (2 * ncc_radius + 1) ** 2))
+        prev_gray = None
+        last_detect = -redetect_every
+        k = 0
+        while True:
+            gray = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY) if frame.ndim == 3 else frame
+            color = frame if frame.ndim == 3 else cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)
+            is_cut = cuts(color)
+            if k > 0:
+                A = np.eye(3)
+                if is_cut:
+                    shots.append(k)
+                    ids, pts, tmpl = ids[:0], pts[:0], tmpl[:0]
+                elif ids.size:
+                    old = pts
+                    nxt, st, _ = cv2.calcOpticalFlowPyrLK(prev_gray, gray, old.reshape(-1, 1, 2), None, **lk)
+                    back, st_b, _ = cv2.calcOpticalFlowPyrLK(gray, prev_gray, nxt, None, **lk)
+                    nxt = nxt.reshape(-1, 2)
+                    fb = np.linalg.norm(back.reshape(-1, 2) - old, axis=1)
+                    inside = ((nxt[:, 0] >= rx) & (nxt[:, 0] <= rx + rw - 1)
+                              & (nxt[:, 1] >= ry) & (nxt[:, 1] <= ry + rh - 1))
+                    good = (st.ravel() == 1) & (st_b.ravel() == 1) & (fb < fb_threshold) & inside
+                    n_fb_lost += int((~good).sum())
+                    if min_ncc > -1 and good.any():
+                        # Compare with the feature's first appearance: a point sliding along an
+                        # occluding edge changes its neighbourhood slowly, step by step.
+                        ncc = np.full(len(old), -1.0)
+                        ncc[good] = _template_ncc(gray, nxt[good], tmpl[good], ncc_radius, min_ncc)
+                        similar = ncc >= min_ncc
+                        n_ncc_lost += int((good & ~similar).sum())
+                        good &= similar
+                    A = _dominant_motion(old[good], nxt[good], 2 * fb_threshold)
+                    ids, pts, tmpl = ids[good], nxt[good].astype(np.float32), tmpl[good]
+                steps.append(A)
+            if ids.size < max_points and (k - last_detect >= redetect_every or ids.size == 0 or is_cut):
+                last_detect = k
+                mask = roi_mask
+                if ids.size:
+                    taken = np.zeros_like(roi_mask)
+                    xi = np.clip(np.round(pts[:, 0]).astype(int), 0, width - 1)
+                    yi = np.clip(np.round(pts[:, 1]).astype(int), 0, height - 1)
+                    taken[yi, xi] = 255
+                    mask = cv2.bitwise_and(roi_mask, cv2.bitwise_not(cv2.dilate(taken, disc)))
+                new = cv2.goodFeaturesToTrack(gray, maxCorners=max_points - ids.size, qualityLevel=float(quality),
+                                              minDistance=md, mask=mask, blockSize=int(block_size))
+                if new is not None and len(new):
+                    new = new.reshape(-1, 2).astype(np.float32)
+                    ids = np.concatenate([ids, np.arange(next_id, next_id + len(new))])
+                    pts = np.concatenate([pts, new])
+                    tmpl = np.concatenate([tmpl, _neighbourhoods(gray, new, ncc_radius)])
+                    next_id += len(new)
+            rec_f.append(np.full(ids.size, k, np.int64))
+            rec_id.append(ids.copy())
+            rec_xy.append(pts.copy())
+            prev_gray = gray
+            k += 1
+            bar.update(1)
+            if stop is not None and start + k >= stop:
+                break
+            ok, frame = cap.read()
+            if not ok or frame is None:
+                break
+        bar.close()
+    finally:
+        cap.release()
+
+    F = k
+    if F < 2:
+        raise ValueError(f"video {vpath.name} has only {F} frame(s) from frame {start}; need at least 2")
+    fr = np.concatenate(rec_f)
+    tid = np.concatenate(rec_id)
+    xy_obs = np.concatenate(rec_xy).astype(float)
+    n_detected = next_id
+    if n_detected == 0:
+        raise ValueError(f"no trackable features found in {vpath.name} (featureless frames or region of interest)")
+
+    # Order observations by (track, frame): each track is one contiguous run of frames.
+    order = np.lexsort((fr, tid))
+    fr, tid, xy_obs = fr[order], tid[order], xy_obs[order]
+    first = np.r_[True, tid[1:] != tid[:-1]]
+    starts = np.flatnonzero(first)
+    lengths = np.diff(np.r_[starts, tid.size])
+    track_ids = tid[starts]
+
+    min_len = _min_length_frames(min_length, F)
+    long_enough = lengths >= min_len
+
+    # Static test: cumulative residual after the dominant motion, per track.
+    A = np.stack(steps) if steps else np.zeros((0, 3, 3))
+    if not stabilize:
+        A = np.broadcast_to(np.eye(3), (F - 1, 3, 3))
+    step_res = np.zeros_like(xy_obs)
+    cont = ~first  # the row continues the previous row's track at the previous frame
+    if cont.any():
+        prev_xy = xy_obs[np.flatnonzero(cont) - 1]
+        Af = A[fr[cont] - 1]  # motion from frame f-1 to f
+        ph = np.einsum("nij,nj->ni", Af[:, :, :2], prev_xy) + Af[:, :, 2]
+        pred = ph[:, :2] / ph[:, 2:]
+        step_res[cont] = xy_obs[cont] - pred
+    path = np.cumsum(step_res, axis=0)
+    path -= np.repeat(path[starts] - step_res[starts], lengths, axis=0)  # restart at each track
+    extent = np.hypot(*(np.maximum.reduceat(path, starts, axis=0) - np.minimum.reduceat(path, starts, axis=0)).T)
+    moving = extent >= motion_px
+
+    keep = long_enough & moving
+    n_keep = int(keep.sum())
+    if n_keep == 0:
+        raise ValueError(
+            f"no track of {vpath.name} survived the clean-up ({n_detected} detected, "
+            f"{int((~long_enough).sum())} shorter than {min_len} frames, {int((long_enough & ~moving).sum())} static "
+            f"under {motion_px:.1f} px); lower min_length or min_motion"
+        )
+    new_index = -np.ones(track_ids.size, np.int64)
+    new_index[keep] = np.arange(n_keep)
+    row_track = np.repeat(new_index, lengths)
+    sel = row_track >= 0
+    xy = np.full((n_keep, F, 2), np.nan)
+    xy[row_track[sel], fr[sel]] = xy_obs[sel]
+
+    shot_of_frame = np.searchsorted(np.asarray(shots), np.arange(F), side="right") - 1
+    first_frame = fr[starts][keep]
+    elapsed = time.perf_counter() - t0
+    meta: dict[str, Any] = {
+        "source": "track",
+        "frame_offset": start,
+        "shots": [int(s) for s in shots],
+        "roi": [rx, ry, rw, rh],
+        "track_start": first_frame.astype(np.int64),
+        "track_shot": shot_of_frame[first_frame].astype(np.int64),
+        "track_motion": extent[keep].astype(float),
+        "tracker": {
+            "max_points": max_points, "min_length_frames": int(min_len), "min_motion_px": float(motion_px),
+            "min_distance_px": float(md), "quality": float(quality), "block_size": int(block_size),
+            "window": window, "levels": int(levels), "fb_threshold": fb_threshold,
+            "redetect_every": redetect_every, "cut_threshold": float(cut_threshold), "stabilize": bool(stabilize),
+        },
+        "tracking": {
+            "frames": F, "detected": int(n_detected), "too_short": int((~long_enough).sum()),
+            "static": int((long_enough & ~moving).sum()), "kept": n_keep, "fb_lost": n_fb_lost, "ncc_lost": n_ncc_lost,
+            "seconds": round(elapsed, 3),
+        },
+    }
+    return Trajectories(
+        xy=xy,
+        names=[f"track{int(t)}" for t in track_ids[keep]],
+        frame_rate=fps if fps > 0 else None,
+        image_size=(width, height),
+        video=str(vpath),
+        meta=meta,
+    )
+
+
+def _neighbourhoods(img: np.ndarray, p: np.ndarray, r: int, angle: float = 0.0) -> np.ndarray:
+    """The (2r+1)^2 neighbourhoods of points ``p`` (n, 2), zero-mean and unit-norm, shape (n, (2r+1)^2).
+
+    Sampled bilinearly (sub-pixel) on a grid turned by ``angle`` (radians),
+    with one ``cv2.remap`` for all points, so the dot product of two rows is
+    their normalised cross-correlation. A flat neighbourhood becomes all zeros.
+    """
+    cv2 = _cv2()
+    off = np.arange(-r, r + 1, dtype=np.float64)
+    gx, gy = np.meshgrid(off, off)
+    c, s = np.cos(angle), np.sin(angle)
+    gx, gy = c * gx - s * gy, s * gx + c * gy
+    k = 2 * r + 1
+    mx = (p[:, 0, None, None] + gx[None]).reshape(-1, k).astype(np.float32)
+    my = (p[:, 1, None, None] + gy[None]).reshape(-1, k).astype(np.float32)
+    v = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    v = v.reshape(len(p), k * k).astype(np.float64)
+    v -= v.mean(axis=1, keepdims=True)
+    norm = np.linalg.norm(v, axis=1, keepdims=True)
+    return np.divide(v, norm, out=np.zeros_like(v), where=norm > 1e-6)
+
+
+def _template_ncc(img: np.ndarray, p: np.ndarray, tmpl: np.ndarray, r: int, threshold: float) -> np.ndarray:
+    """Correlation of each point's neighbourhood with its template, best over in-plane rotations, shape (n,).
+
+    Points on a turning limb keep their appearance up to a rotation, so a
+    point below ``threshold`` is tried again at rotations in 15-degree steps
+    before it is declared lost.
+    """
+    ncc = (_neighbourhoods(img, p, r) * tmpl).sum(axis=1)
+    low = np.flatnonzero(ncc < threshold)
+    for ang in np.radians(np.r_[np.arange(15, 181, 15), -np.arange(15, 180, 15)]):
+        if not low.size:
+            break
+        c = (_neighbourhoods(img, p[low], r, ang) * tmpl[low]).sum(axis=1)
+        ncc[low] = np.maximum(ncc[low], c)
+        low = low[c < threshold]
+    return ncc
+
+
+def _dominant_motion(src: np.ndarray, dst: np.ndarray, threshold: float) -> np.ndarray:
+    """The motion most points agree on between two frames, as a 3x3 homography.
+
+    A homography is exact for a camera that only turns (pan, tilt, zoom) and for
+    a planar background; RANSAC makes it the motion of the largest consistent
+    set of points (the background), not of the figure moving in front of it.
+    With too few points for a homography, a similarity is fitted; with fewer
+    than 3, the identity.
+    """
+    cv2 = _cv2()
+    H = None
+    n = len(src)
+    thr = max(1.0, float(threshold))
+    if n >= 12:
+        H, _ = cv2.findHomography(src, dst, cv2.RANSAC, thr)
+    if H is None and n >= 3:
+        M, _ = cv2.estimateAffinePartial2D(src, dst, method=cv2.RANSAC, ransacReprojThreshold=thr)
+        if M is not None:
+            H = np.vstack([M, [0.0, 0.0, 1.0]])
+    if H is None or not np.all(np.isfinite(H)) or abs(H[2, 2]) < 1e-12:
+        return np.eye(3)
+    H = H / H[2, 2]
+    # Keep the identity unless H explains the points clearly better: chaining
+    # per-frame estimates integrates their errors, which for a still camera
+    # would make the static background drift.
+    hp = np.c_[src, np.ones(n)] @ H.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        err_h = np.median(np.linalg.norm(hp[:, :2] / hp[:, 2:] - dst, axis=1))
+    err_i = np.median(np.linalg.norm(dst - src, axis=1))
+    if not np.isfinite(err_h) or err_i <= err_h + 0.1:
+        return np.eye(3)
+    return H
+
+
+def _min_length_frames(min_length: Any, n_frames: int) -> int:
+    try:
+        v = float(min_length)
+    except (TypeError, ValueError):
+        raise ValueError(f"min_length must be a fraction of the frames (< 1) or a number of frames, "
+                         f"got {min_length!r}") from None
+    if not np.isfinite(v) or v < 0:
+        raise ValueError(f"min_length must be >= 0, got {min_length!r}")
+    if v < 1:
+        return int(min(n_frames, max(10, int(np.ceil(v * n_frames)))))
+    return int(np.ceil(v))
+
+
+def best_window(
+    traj: Trajectories,
+    *,
+    min_frames: float = 0.1,
+    max_frames: int | None = 400,
+    coverage: float = 0.8,
+    min_points: int = 10,
+    max_points: int | None = 150,
+) -> Trajectories:
+    """Keep the frame window and points that hold the most observations.
+
+    For every window ``[a, b)`` (lengths from ``min_frames`` to ``max_frames``,
+    every start), the points observed in at least ``coverage`` of its frames
+    are counted; the window maximising ``n_points * length`` wins (ties: the
+    longer, then the earlier window). ``max_frames`` keeps a long video from
+    trading points for frames: a few hundred frames are plenty for every
+    method, while each extra point adds to the structure that can be learned. Windows never cross a shot cut
+    (``meta["shots"]``). If more than ``max_points`` points qualify, those
+    observed longest are kept, and among equally covered ones a spatially
+    spread subset (farthest-point sampling on their mean positions).
+
+    Parameters
+    ----------
+    traj : Trajectories
+    min_frames : float
+        Shortest window: a fraction of F (< 1; at least 10 frames) or frames.
+    max_frames : int, optional
+        Longest window (None: F).
+    coverage : float in (0, 1]
+        Share of the window's frames a point must be observed in.
+    min_points : int
+        Windows with fewer qualifying points are not considered (unless no
+        window has that many, then the best one is taken).
+    max_points : int, optional
+        Most points kept.
+
+    Returns
+    -------
+    Trajectories
+        ``traj.slice(frames=..., points=...)``; ``meta["window"]`` records the
+        choice (``start``, ``stop`` relative to ``traj``, points kept of how many).
+        Complete data come back whole.
+    """
+    if not isinstance(traj, Trajectories):
+        raise TypeError(f"traj must be a Trajectories, got {type(traj).__name__}")
+    if not 0 < float(coverage) <= 1:
+        raise ValueError(f"coverage must be in (0, 1], got {coverage!r}")
+    P, F = traj.n_points, traj.n_frames
+    obs = traj.observed
+    Lmin = min(F, _min_length_frames(min_frames, F)) if float(min_frames) < 1 else min(F, int(min_frames))
+    Lmin = max(Lmin, 2)
+    Lmax = F if max_frames is None else max(Lmin, min(F, int(max_frames)))
+    cs = np.zeros((P, F + 1), np.int32)
+    np.cumsum(obs, axis=1, out=cs[:, 1:])
+    shots = np.asarray(traj.meta.get("shots", [0]), np.int64)
+    shot_id = np.searchsorted(shots, np.arange(F), side="right") - 1
+    best = (-1, 0, 0, 0, 0)  # (score, length, -start, start, n)
+    best_any = best
+
+    def scan(lengths: np.ndarray) -> None:
+        nonlocal best, best_any
+        for L in lengths:
+            a = np.arange(0, F - L + 1)
+            a = a[shot_id[a] == shot_id[a + L - 1]]
+            if not a.size:
+                continue
+            need = int(np.ceil(coverage * L))
+            # Points qualifying per start, chunked so memory stays O(P * chunk).
+            n = np.empty(a.size, np.int64)
+            for c in range(0, a.size, 256):
+                aa = a[c:c + 256]
+                n[c:c + 256] = ((cs[:, aa + L] - cs[:, aa]) >= need).sum(axis=0)
+            score = n * L
+            i = int(np.argmax(score))  # first maximum: the earliest start
+            cand = (int(score[i]), int(L), -int(a[i]), int(a[i]), int(n[i]))
+            if cand[:3] > best_any[:3]:
+                best_any = cand
+            if n[i] >= min_points and cand[:3] > best[:3]:
+                best = cand
+
+    # A geometric grid of lengths, then every length between the winner's grid neighbours.
+    grid = np.unique(np.round(np.geomspace(Lmin, Lmax, num=min(40, Lmax - Lmin + 1))).astype(int))
+    scan(grid)
+    for ref in {best[1], best_any[1]} - {0}:
+        k = int(np.searchsorted(grid, ref))
+        lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, grid.size - 1)]
+        scan(np.setdiff1d(np.arange(lo, hi + 1), grid))
+    if best[0] < 0:
+        best = best_any
+    if best[0] <= 0:
+        raise ValueError(f"no window of at least {Lmin} frames has a point observed in {coverage:.0%} of its frames")
+    _, L, _, a0, _ = best
+    win = obs[:, a0:a0 + L]
+    counts = win.sum(axis=1)
+    qual = np.flatnonzero(counts >= int(np.ceil(coverage * L)))
+    if max_points is not None and qual.size > int(max_points):
+        qual = _spread_subset(traj.xy[qual, a0:a0 + L], counts[qual], int(max_points), qual)
+    out = traj.slice(frames=slice(a0, a0 + L), points=np.sort(qual))
+    out.meta["window"] = {"start": a0, "stop": a0 + L, "points": int(qual.size), "of_points": P,
+                          "coverage": float(coverage)}
+    return out
+
+
+def _spread_subset(xy: np.ndarray, counts: np.ndarray, k: int, index: np.ndarray) -> np.ndarray:
+    """Keep ``k`` points: the best observed first; ties broken by farthest-point sampling."""
+    order = np.argsort(-counts, kind="stable")
+    cutoff = counts[order[k - 1]]
+    sure = order[counts[order] > cutoff]
+    pool = order[counts[order] == cutoff]
+    need = k - sure.size
+    mean = np.nanmean(xy, axis=1)  # (n, 2); every candidate is observed in the window
+    chosen = list(sure)
+    if need > 0:
+        pm = mean[pool]
+        if sure.size:
+            d = np.min(np.linalg.norm(pm[:, None] - mean[sure][None], axis=2), axis=1)
+        else:  # start next to the centre, then spread out
+            j0 = int(np.argmin(np.linalg.norm(pm - pm.mean(axis=0), axis=1)))
+            chosen.append(pool[j0])
+            need -= 1
+            d = np.linalg.norm(pm - pm[j0], axis=1)
+            d[j0] = -np.inf
+        for _ in range(need):
+            j = int(np.argmax(d))
+            chosen.append(pool[j])
+            d = np.minimum(d, np.linalg.norm(pm - pm[j], axis=1))
+            d[j] = -np.inf
+    return index[np.asarray(chosen, np.int64)]

@@ -1,0 +1,356 @@
+"""The KLT tracker on synthetic videos with known motion, and on the shared clips."""
+
+from __future__ import annotations
+
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+import stickfigure as sf
+from stickfigure.track import best_window, track_video
+
+W, H = 240, 180
+PATCH = 80  # side of the moving textured square
+VEL = np.array([1.3, 0.6])  # pixels per frame
+ORIGIN = np.array([30.0, 30.0])  # top-left of the patch in frame 0
+CENTRE = np.array([195.0, 45.0])  # a textured disc turning about its centre
+RADIUS = 28
+OMEGA = np.radians(2.0)  # radians per frame (image coordinates, y down)
+
+
+def _texture(rng: np.random.Generator, h: int, w: int, blur: float = 1.5) -> np.ndarray:
+    """Random blotchy texture with plenty of corners, uint8."""
+    t = rng.uniform(0, 255, size=(h, w)).astype(np.float32)
+    t = cv2.GaussianBlur(t, (0, 0), blur)
+    t = (t - t.min()) / (t.max() - t.min()) * 255
+    return t.astype(np.uint8)
+
+
+def _frames(n: int, seed: int = 0, *, flicker: bool = False, cut_at: int | None = None) -> list[np.ndarray]:
+    """A static textured background, a textured square moving at VEL px/frame and a disc turning at OMEGA.
+
+    Both are drawn with sub-pixel accuracy by affine warps of their textures.
+    ``flicker`` adds a region on the right whose texture is new noise every frame;
+    ``cut_at`` switches to an unrelated scene (a shot cut) from that frame on.
+    """
+    rng = np.random.default_rng(seed)
+    bg = _texture(rng, H, W, blur=1.2)
+    bg = (bg.astype(np.float32) * 0.5 + 40).astype(np.uint8)  # dimmer than the patch
+    patch = _texture(rng, PATCH, PATCH, blur=2.0)
+    disc = _texture(rng, H, W, blur=2.0)
+    yy, xx = np.mgrid[:H, :W]
+    in_disc = np.hypot(xx - CENTRE[0], yy - CENTRE[1]) <= RADIUS
+    other = np.full((H, W), 200, np.uint8)
+    other[::7] = 30  # a different scene: stripes
+    out = []
+    for f in range(n):
+        if cut_at is not None and f >= cut_at:
+            img = other.copy()
+        else:
+            img = bg.copy()
+            x, y = ORIGIN + VEL * f
+            M = np.array([[1.0, 0, x], [0, 1.0, y]])
+            warped = cv2.warpAffine(patch, M, (W, H), flags=cv2.INTER_CUBIC, borderValue=0)
+            inside = cv2.warpAffine(np.full_like(patch, 255), M, (W, H), flags=cv2.INTER_NEAREST) > 0
+            img[inside] = warped[inside]
+            R = cv2.getRotationMatrix2D((float(CENTRE[0]), float(CENTRE[1])), -np.degrees(OMEGA * f), 1.0)
+            img[in_disc] = cv2.warpAffine(disc, R, (W, H), flags=cv2.INTER_CUBIC)[in_disc]
+            if flicker:
+                img[100:175, 170:235] = rng.integers(0, 256, size=(75, 65), dtype=np.uint8)
+        out.append(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
+    return out
+
+
+def _write(path, frames, fourcc: str) -> str:
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), 25.0, (W, H))
+    assert w.isOpened(), f"OpenCV cannot write {fourcc}"
+    for fr in frames:
+        w.write(fr)
+    w.release()
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def moving_patch_video(tmp_path_factory):
+    """Lossless (FFV1) video, 40 frames."""
+    return _write(tmp_path_factory.mktemp("vid") / "patch.avi", _frames(40), "FFV1")
+
+
+def _undo_motion(traj):
+    """Each observation moved back to frame 0 along the square's, the disc's and the background's motion.
+
+    Returns (square, disc, background), each of shape (P, F, 2).
+    """
+    f = np.arange(traj.n_frames) + traj.meta["frame_offset"]
+    square = traj.xy - VEL[None, None, :] * f[None, :, None]
+    a = -OMEGA * f  # rotate back
+    d = traj.xy - CENTRE
+    disc = np.stack([np.cos(a) * d[..., 0] - np.sin(a) * d[..., 1],
+                     np.sin(a) * d[..., 0] + np.cos(a) * d[..., 1]], axis=-1) + CENTRE
+    return square, disc, traj.xy
+
+
+def _track_errors(traj):
+    """Per track, the largest deviation (pixels) from the best-fitting known motion, shape (P,), and which.
+
+    ``which`` is 0 for the square, 1 for the disc and 2 for the static background
+    (a background feature nudged by an object passing over it is not static).
+    """
+    errs = []
+    for back in _undo_motion(traj):
+        ref = np.nanmedian(back, axis=1, keepdims=True)
+        errs.append(np.nanmax(np.linalg.norm(back - ref, axis=2), axis=1))
+    errs = np.stack(errs)
+    return errs.min(axis=0), errs.argmin(axis=0)
+
+
+def _outline_distance(traj, which):
+    """Distance (pixels) of each track from its object's outline, in the object's frame-0 position."""
+    sq, dc, _ = (np.nanmedian(b, axis=1) for b in _undo_motion(traj))
+    d_sq = np.minimum(np.abs(sq - ORIGIN), np.abs(sq - ORIGIN - PATCH)).min(axis=1)
+    d_dc = np.abs(np.linalg.norm(dc - CENTRE, axis=1) - RADIUS)
+    return np.select([which == 0, which == 1], [d_sq, d_dc], 0.0)
+
+
+def _patch_tracks(traj, typical: float = 1.0, worst: float = 5.0) -> None:
+    """Tracks follow the known motion.
+
+    Tracks whose window lies inside an object: 90% within ``typical`` pixels
+    over the whole clip. Features next to an outline mix two motions in their
+    window and drift by a pixel or two; every track stays within ``worst``.
+    """
+    err, which = _track_errors(traj)
+    inner = _outline_distance(traj, which) > 8  # half the default LK window
+    assert inner.sum() >= 5
+    assert np.quantile(err[inner], 0.9) < typical, f"90% of inner tracks within {np.quantile(err[inner], 0.9):.2f} px"
+    assert np.median(err) < typical, f"median track error {np.median(err):.2f} px"
+    assert err.max() < worst, f"worst track error {err.max():.2f} px"
+
+
+def test_tracks_follow_known_motion(moving_patch_video):
+    traj = track_video(moving_patch_video)
+    assert isinstance(traj, sf.Trajectories)
+    assert traj.n_frames == 40 and traj.n_dims == 2
+    assert traj.image_size == (W, H)
+    assert traj.frame_rate == pytest.approx(25.0)
+    assert traj.meta["frame_offset"] == 0
+    assert traj.video is not None and traj.video.endswith("patch.avi")
+    # The static background is removed; what is left are points on the patch.
+    assert traj.n_points >= 10
+    _patch_tracks(traj)
+    # ...and the points lie on the square or the disc (in their frame-0 positions).
+    err, which = _track_errors(traj)
+    assert np.mean(which == 2) < 0.05  # the static background is gone
+    sq, dc, _ = (np.nanmedian(b, axis=1) for b in _undo_motion(traj))
+    on_square = np.all((sq >= ORIGIN - 2) & (sq <= ORIGIN + PATCH + 2), axis=1)
+    on_disc = np.linalg.norm(dc - CENTRE, axis=1) <= RADIUS + 2
+    assert np.all(np.select([which == 0, which == 1], [on_square, on_disc], True))
+    # Points on the turning disc are followed through its 78-degree turn.
+    assert on_disc.sum() >= 5
+    assert traj.observed[on_disc].sum(axis=1).max() == 40
+    # Features inside the objects found in frame 0 are followed to the end.
+    inner = (_outline_distance(traj, which) > 8) & (traj.meta["track_start"] == 0)
+    assert inner.sum() >= 10
+    assert np.median(traj.observed[inner].sum(axis=1)) == 40
+
+
+def test_mp4_video_and_progress(tmp_path, capsys):
+    path = _write(tmp_path / "patch.mp4", _frames(25, seed=3), "mp4v")
+    traj = track_video(path, progress=True)
+    assert traj.n_points >= 5
+    # A lossy codec blurs and blocks the texture: a few points next to the moving
+    # outlines get dragged; the bulk is still sub-pixel.
+    _patch_tracks(traj, typical=1.5, worst=np.inf)
+    assert np.quantile(_track_errors(traj)[0], 0.95) < 3.0
+    assert "tracking" in capsys.readouterr().err
+
+
+def test_static_background_kept_when_asked(moving_patch_video):
+    kept = track_video(moving_patch_video, min_motion=0)
+    moved = track_video(moving_patch_video)
+    assert kept.n_points > moved.n_points + 20
+    assert kept.meta["tracking"]["static"] == 0
+
+
+def test_lost_points_are_nan_and_never_resurrected(tmp_path):
+    # The square leaves the region of interest on the right: its points are lost, as NaN, for good.
+    frames = _frames(60, seed=1)
+    path = _write(tmp_path / "exit.avi", frames, "FFV1")
+    traj = track_video(path, min_length=5, roi=(0, 0, 150, H))
+    obs = traj.observed
+    assert (~obs).any()
+    # One contiguous run of observations per trajectory.
+    runs = np.diff(obs.astype(np.int8), axis=1)
+    n_starts = (runs == 1).sum(axis=1) + obs[:, 0]
+    assert np.all(n_starts == 1)
+    # Re-detected features started new trajectories later on.
+    assert len(set(traj.meta["track_start"].tolist())) > 1
+    _patch_tracks(traj)
+
+
+def test_forward_backward_check_rejects_bad_tracks(tmp_path):
+    path = _write(tmp_path / "flicker.avi", _frames(30, seed=2, flicker=True), "FFV1")
+
+    def in_flicker(traj):
+        x, y = traj.xy[..., 0], traj.xy[..., 1]
+        with np.errstate(invalid="ignore"):
+            return (x >= 170) & (x < 235) & (y >= 100) & (y < 175)
+
+    # The appearance check is off, so the forward-backward check alone decides.
+    strict = track_video(path, min_length=1, min_motion=0, min_ncc=-1)
+    loose = track_video(path, min_length=1, min_motion=0, min_ncc=-1, fb_threshold=1e6)
+    # Independent noise every frame: a feature there rarely survives the check for long...
+    run_strict = in_flicker(strict).sum(axis=1)
+    run_strict = run_strict[run_strict > 0]
+    assert np.mean(run_strict > 3) < 0.1
+    # ...while without it LK happily "tracks" the noise.
+    run_loose = in_flicker(loose).sum(axis=1)
+    run_loose = run_loose[run_loose > 0]
+    assert np.mean(run_loose > 3) > 0.5
+    assert strict.meta["tracking"]["fb_lost"] > loose.meta["tracking"]["fb_lost"]
+    # The appearance check catches them too.
+    assert (in_flicker(track_video(path, min_length=1, min_motion=0))).sum(axis=1).max() <= 2
+    # Tracks on the real objects are unaffected.
+    patch = track_video(path)
+    ok = ~np.any(in_flicker(patch), axis=1)
+    assert ok.sum() >= 10
+    _patch_tracks(patch.slice(points=ok))
+
+
+def test_roi_and_frame_range(moving_patch_video):
+    roi = (20, 20, 110, 90)
+    traj = track_video(moving_patch_video, roi=roi, start=5, stop=30, min_length=5)
+    assert traj.n_frames == 25
+    assert traj.meta["frame_offset"] == 5
+    assert traj.meta["roi"] == list(roi)
+    x, y = traj.xy[..., 0], traj.xy[..., 1]
+    obs = traj.observed
+    assert np.all((x[obs] >= 20) & (x[obs] <= 129) & (y[obs] >= 20) & (y[obs] <= 109))
+    # Positions are in full-frame coordinates at absolute frame numbers.
+    _patch_tracks(traj)
+    # Frames past the end of the video are simply not there.
+    tail = track_video(moving_patch_video, start=30, stop=1000, min_length=2)
+    assert tail.n_frames == 10
+
+
+def test_shot_cut_ends_every_track(tmp_path):
+    path = _write(tmp_path / "cut.avi", _frames(40, seed=4, cut_at=22), "FFV1")
+    traj = track_video(path, min_length=3, min_motion=0)
+    assert traj.meta["shots"] == [0, 22]
+    obs = traj.observed
+    assert not np.any(obs[:, 21] & obs[:, 22])  # no trajectory crosses the cut
+    assert np.all(np.isin(traj.meta["track_shot"], [0, 1]))
+
+
+@pytest.mark.parametrize("content", [b"", b"this is not a video\n" * 50])
+def test_unreadable_or_empty_video(tmp_path, content):
+    p = tmp_path / "bad.mp4"
+    p.write_bytes(content)
+    with pytest.raises(ValueError, match="bad.mp4") as err:
+        track_video(p)
+    assert "\n" not in str(err.value)
+
+
+def test_bad_arguments(tmp_path, moving_patch_video):
+    with pytest.raises(ValueError, match="not found"):
+        track_video(tmp_path / "missing.mp4")
+    with pytest.raises(ValueError, match="directory"):
+        track_video(tmp_path)
+    with pytest.raises(ValueError, match="roi"):
+        track_video(moving_patch_video, roi=(500, 500, 10, 10))
+    with pytest.raises(ValueError, match="roi"):
+        track_video(moving_patch_video, roi="everything")
+    with pytest.raises(ValueError, match="beyond the end"):
+        track_video(moving_patch_video, start=100)
+    with pytest.raises(ValueError, match="stop"):
+        track_video(moving_patch_video, start=5, stop=6)
+    with pytest.raises(ValueError, match="survived"):
+        track_video(moving_patch_video, min_motion=500)
+
+
+def test_one_frame_video_is_an_error(tmp_path):
+    path = _write(tmp_path / "one.avi", _frames(1), "FFV1")
+    with pytest.raises(ValueError, match="only 1 frame"):
+        track_video(path)
+
+
+# ----------------------------------------------------------------- best_window
+def _coverage_traj(pattern: np.ndarray, shots=None) -> sf.Trajectories:
+    P, F = pattern.shape
+    rng = np.random.default_rng(0)
+    xy = rng.normal(size=(P, F, 2)) + np.c_[np.arange(P) * 3.0, np.full(P, 100.0)][:, None, :]
+    xy[~pattern] = np.nan
+    meta = {"shots": shots} if shots else {}
+    return sf.Trajectories(xy, image_size=(200, 200), meta=meta)
+
+
+def test_best_window_picks_most_observations():
+    F = 100
+    obs = np.zeros((40, F), bool)
+    obs[:30, 10:60] = True  # 30 points x 50 frames = 1500
+    obs[30:, :] = True  # 10 points everywhere (they count in every window)
+    obs[:5, 60:70] = True
+    traj = _coverage_traj(obs)
+    win = best_window(traj, coverage=1.0, min_points=5, max_points=None)
+    assert (win.meta["window"]["start"], win.meta["window"]["stop"]) == (10, 60)
+    assert win.n_points == 40 and win.n_frames == 50
+    assert win.meta["frame_offset"] == 10
+    assert win.missing_fraction == 0.0
+
+
+def test_best_window_complete_data_is_unchanged(small_figure):
+    win = best_window(small_figure, max_points=None)
+    assert win.n_points == small_figure.n_points and win.n_frames == small_figure.n_frames
+    np.testing.assert_array_equal(win.xy, small_figure.xy)
+
+
+def test_best_window_respects_shots_and_max_points():
+    F = 80
+    obs = np.ones((60, F), bool)
+    traj = _coverage_traj(obs, shots=[0, 30])
+    win = best_window(traj, max_points=25)
+    w = win.meta["window"]
+    assert w["start"] >= 30 and w["stop"] == 80  # the longer shot
+    assert win.n_points == 25
+    # Spread: points 0..59 lie along a line every 3 px; the kept ones cover it.
+    m = np.nanmean(win.xy, axis=1)
+    assert np.ptp(m[:, 0]) > 150
+    assert np.min(np.diff(np.sort(m[:, 0]))) > 4
+
+
+def test_best_window_bad_input(small_figure):
+    with pytest.raises(ValueError, match="coverage"):
+        best_window(small_figure, coverage=0)
+    with pytest.raises(TypeError):
+        best_window(small_figure.xy)
+
+
+# ------------------------------------------------------------------ real clips
+@pytest.mark.data
+def test_bikes(data_dir):
+    t0 = time.perf_counter()
+    traj = track_video(data_dir / "video" / "bikes.mp4", stop=137)
+    elapsed = time.perf_counter() - t0
+    assert traj.image_size == (640, 272)
+    assert traj.n_frames == 137
+    # bikes.mp4 is edited: cuts after frames 29 and 75.
+    assert traj.meta["shots"] == [0, 30, 76]
+    assert traj.n_points > 50
+    assert elapsed < 30
+    win = best_window(traj)
+    assert win.n_points >= 10 and win.n_frames >= 20
+    assert win.missing_fraction < 0.2
+
+
+@pytest.mark.data
+@pytest.mark.slow
+def test_clip_flies(data_dir):
+    traj = track_video(data_dir / "video" / "clip.mp4")
+    assert traj.n_frames == 1500 and traj.image_size == (1024, 1024)
+    assert traj.meta["shots"] == [0]
+    assert traj.n_points >= 30
+    win = best_window(traj)
+    assert win.n_points >= 10 and win.n_frames >= 300
+    assert win.missing_fraction < 0.2
