@@ -31,7 +31,9 @@ converts; for other skeletons the unit is unknown (``meta["units"]`` None) and
 
 AMC files do not store a frame rate: ``frame_rate=`` sets it; otherwise a
 trailing ``_<fps>`` in the file name (the HDM05 convention, ``..._120.amc``) is
-used, else 120 Hz (the CMU capture rate). ``meta["frame_rate_source"]`` says
+used (a name of at least three ``_``-separated fields ending in a number from 24
+to 2000; CMU's ``131_01`` ends in a trial number instead), else 120 Hz (the
+CMU capture rate). ``meta["frame_rate_source"]`` says
 which.
 
 Points and ground truth (see :mod:`stickfigure.io._kinematics`): one point at the
@@ -173,6 +175,9 @@ def read_asf(path: str | os.PathLike) -> ASF:
     if not bones:
         raise fail(path, "the ASF file defines no bones")
 
+    hier_keys = [t[0].lower() for t in sections["hierarchy"]]
+    if "begin" in hier_keys and "end" not in hier_keys[hier_keys.index("begin"):]:
+        raise fail(path, "truncated ASF file: the :hierarchy block is not closed")
     children: dict[str, list[str]] = {}
     seen = set()
     in_block = False
@@ -431,7 +436,9 @@ def find_asf(amc_path: Path) -> Path:
                      f"({', '.join(p.name for p in asfs)}); pass asf='...'")
 
 
-_RATE_IN_NAME = re.compile(r"_(\d{2,4})$")
+# HDM05 names end in the capture rate ("HDM_dg_06-03_03_120"); CMU names
+# ("131_01") end in a trial number, so at least three fields are required.
+_RATE_IN_NAME = re.compile(r"^[^_]+_[^_]+_.*_([1-9]\d{1,3})$")
 _MM_PER = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
 
 
@@ -486,7 +493,7 @@ def load_amc(
     rate_source = "argument"
     if frame_rate is None:
         m = _RATE_IN_NAME.search(path.stem)
-        if m:
+        if m and 24 <= int(m.group(1)) <= 2000:
             frame_rate, rate_source = float(m.group(1)), "file name"
         else:
             frame_rate, rate_source = 120.0, "default (CMU capture rate)"

@@ -32,6 +32,7 @@ __all__ = ["load_hopkins", "read_mat"]
 def read_mat(path: Path) -> dict[str, Any]:
     """Variables of a MATLAB file (v4/v5 via scipy, v7.3 via h5py), without the ``__`` entries."""
     import scipy.io
+    from scipy.io.matlab import MatReadError
 
     try:
         raw = scipy.io.loadmat(str(path), squeeze_me=False, struct_as_record=True)
@@ -44,7 +45,7 @@ def read_mat(path: Path) -> dict[str, Any]:
                 return {k: np.asarray(v).T for k, v in f.items() if isinstance(v, h5py.Dataset)}
         except OSError as exc:
             raise fail(path, f"malformed MATLAB v7.3 file ({exc})") from None
-    except (ValueError, TypeError, OSError, EOFError, IndexError, KeyError, MemoryError) as exc:
+    except (MatReadError, ValueError, TypeError, OSError, EOFError, IndexError, KeyError, MemoryError) as exc:
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise fail(path, f"not a readable MATLAB file or truncated ({msg})") from None
     return {k: v for k, v in raw.items() if not k.startswith("__")}

@@ -130,7 +130,8 @@ def save_csv(traj: Trajectories, path: str | os.PathLike) -> Path:
         else:
             w.writerows(rows_by_point[p])
     with atomic_path(path) as tmp:
-        tmp.write_text(buf.getvalue(), encoding="utf-8")
+        with open(tmp, "w", encoding="utf-8", newline="") as fh:
+            fh.write(buf.getvalue())
     return path
 
 
@@ -160,19 +161,28 @@ def load_csv(path: str | os.PathLike) -> Trajectories:
     """Read a long-format CSV (see the module docstring)."""
     path = check_file(path)
     try:
-        text = path.read_text(encoding="utf-8-sig")
+        # newline="" keeps quoted line breaks inside names for the csv module.
+        with open(path, encoding="utf-8-sig", newline="") as fh:
+            text = fh.read()
     except UnicodeDecodeError:
         raise fail(path, "not a UTF-8 text file") from None
-    lines = text.splitlines()
     opts: dict[str, Any] = {}
-    start = 0
-    while start < len(lines) and (not lines[start].strip() or lines[start].lstrip().startswith("#")):
-        if lines[start].strip():
-            _parse_comment(path, lines[start].strip(), opts)
-        start += 1
-    if start >= len(lines):
+    pos = 0
+    n_comment_lines = 0
+    while pos < len(text):
+        nl = text.find("\n", pos)
+        end = len(text) if nl < 0 else nl + 1
+        line = text[pos:end].strip()
+        if line and not line.startswith("#"):
+            break
+        if line:
+            _parse_comment(path, line, opts)
+        n_comment_lines += 1
+        pos = end
+    if pos >= len(text):
         raise fail(path, "no header line (expected 'point,frame,x,y[,z]')")
-    reader = csv.reader(lines[start:])
+    reader = csv.reader(_io.StringIO(text[pos:], newline=""))
+    start = n_comment_lines
     header = [h.strip().lower() for h in next(reader)]
     if header[:4] != ["point", "frame", "x", "y"]:
         raise fail(path, f"header must start with 'point,frame,x,y', got {','.join(header)!r}")
@@ -184,7 +194,8 @@ def load_csv(path: str | os.PathLike) -> Trajectories:
     need = max(cols["x"], cols["y"], cols.get("z", 0), lab_col if lab_col is not None else 0) + 1
     point_index: dict[str, int] = {}
     pts, frames, vals, labels = [], [], [], {}
-    for lineno, row in enumerate(reader, start=start + 2):
+    for row in reader:
+        lineno = start + reader.line_num
         if not row or all(not c.strip() for c in row):
             continue
         if len(row) < need:
