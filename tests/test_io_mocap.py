@@ -273,13 +273,33 @@ def test_bvh_forward_kinematics_matches_independent_computation(tmp_path):
         np.testing.assert_allclose(t.joints_true[e], expected[t.part_names[b]], atol=1e-9)
 
 
-def test_bvh_replace_position_mode(tmp_path):
+def test_bvh_position_modes(tmp_path):
     motion = _write_bvh(tmp_path / "t.bvh", F=3)
+    assert load(tmp_path / "t.bvh").meta["position_mode"] == "add"  # C's channels are small slides
     t = load(tmp_path / "t.bvh", position_mode="replace", merge_rigid=False)
     # the root's position channels are its position
     np.testing.assert_allclose(t.xy[0], motion[:, :3], atol=1e-9)
     with pytest.raises(ValueError, match="position_mode"):
         load(tmp_path / "t.bvh", position_mode="absolute")
+
+
+def test_bvh_exporter_writing_full_translations_is_read_as_replace(tmp_path):
+    """Some exporters put 6 channels on every joint, with positions equal to OFFSET."""
+    rng = np.random.default_rng(3)
+    F = 6
+    rows = []
+    for _ in range(F):
+        root = [5 + rng.normal(), 40 + rng.normal(), rng.normal()]
+        rows.append(root + list(rng.uniform(-30, 30, 3)) + [0, -18, 0] + list(rng.uniform(-30, 30, 3)))
+    text = ("HIERARCHY\nROOT Hips\n{\n OFFSET 5 40 0\n CHANNELS 6 Xposition Yposition Zposition Zrotation "
+            "Xrotation Yrotation\n JOINT Knee\n {\n  OFFSET 0 -18 0\n  CHANNELS 6 Xposition Yposition "
+            "Zposition Zrotation Xrotation Yrotation\n  End Site\n  {\n   OFFSET 0 -20 0\n  }\n }\n}\n"
+            f"MOTION\nFrames: {F}\nFrame Time: 0.0333333\n" + "\n".join(" ".join(map(str, r)) for r in rows))
+    (tmp_path / "full.bvh").write_text(text)
+    t = load(tmp_path / "full.bvh")
+    assert t.meta["position_mode"] == "replace"
+    np.testing.assert_allclose(t.xy[0], np.array(rows)[:, :3])  # the root where its channels say
+    np.testing.assert_allclose(np.linalg.norm(t.xy[1] - t.xy[0], axis=-1), 18)  # not 36
 
 
 @pytest.mark.data

@@ -16,8 +16,10 @@ angles in degrees). Listed rotations ``Zrotation Xrotation Yrotation`` thus give
 ``Rotation.from_euler("ZXY", ...)``; any order and interleaving is accepted, and
 position channels may appear on any joint. Global transforms compose down the
 tree, vectorised over frames. Some exporters write position channels as the
-joint's full local translation rather than an increment on ``OFFSET``;
-``position_mode="replace"`` reads them that way.
+joint's full local translation rather than an increment on ``OFFSET``
+(their channel values stay near ``OFFSET``); ``position_mode="replace"`` reads
+them that way, and the default ``"auto"`` picks the reading from the data
+(:func:`guess_position_mode`; recorded in ``meta["position_mode"]``).
 
 The data are y-up (``up_axis=1``); BVH carries no length unit, so
 ``meta["units"]`` is ``None`` unless ``units=`` is given. What the points and the
@@ -249,10 +251,35 @@ def _local_transforms(node: _Node, motion: np.ndarray, position_mode: str
     return R, t
 
 
+def guess_position_mode(bvh: BVH) -> str:
+    """Whether position channels add to OFFSET ("add") or replace it ("replace").
+
+    Exporters that put position channels on every joint write the full local
+    translation, so the channel values stay near the joint's OFFSET; increments
+    on OFFSET stay near zero instead. Each joint with position channels and a
+    non-zero OFFSET votes for the reading its mean channel values are closer to;
+    ties and files without such joints read "add" (CMU, bvh11).
+    """
+    votes = 0
+    for node in bvh.nodes:
+        pos = [i for i, c in enumerate(node.channels) if c[1:].lower() == "position"]
+        if not pos or not np.any(node.offset):
+            continue
+        mean = np.zeros(3)
+        for i in pos:
+            mean[_AXES[node.channels[i][0].lower()]] = bvh.motion[:, node.first_channel + i].mean()
+        d_replace = np.linalg.norm(mean - node.offset)
+        d_add = np.linalg.norm(mean)
+        votes += int(np.sign(d_add - d_replace))
+    return "replace" if votes > 0 else "add"
+
+
 def bvh_rig(bvh: BVH, position_mode: str = "add") -> Rig:
     """Forward kinematics of a parsed BVH: the posed :class:`Rig`."""
+    if position_mode == "auto":
+        position_mode = guess_position_mode(bvh)
     if position_mode not in ("add", "replace"):
-        raise OptionError(f"position_mode must be 'add' or 'replace', got {position_mode!r}")
+        raise OptionError(f"position_mode must be 'auto', 'add' or 'replace', got {position_mode!r}")
     F = bvh.motion.shape[0]
     joints = [k for k, n in enumerate(bvh.nodes) if not n.end_site]
     frame_of = {k: i for i, k in enumerate(joints)}
@@ -317,7 +344,7 @@ def load_bvh(
     random_state: Any = None,
     marker_spread: float = 0.25,
     merge_rigid: bool = True,
-    position_mode: str = "add",
+    position_mode: str = "auto",
     scale: float = 1.0,
     units: str | None = None,
 ) -> Trajectories:
@@ -335,8 +362,9 @@ def load_bvh(
         Marker distance from the bone axis as a fraction of the bone length.
     merge_rigid : bool
         Weld joints that never move relative to their parent into the parent's part.
-    position_mode : {"add", "replace"}
-        Position channels add to ``OFFSET`` (default) or replace it.
+    position_mode : {"auto", "add", "replace"}
+        Position channels add to ``OFFSET`` or replace it; "auto" (default)
+        decides from the data (:func:`guess_position_mode`).
     scale : float
         Factor applied to every position.
     units : str, optional
@@ -350,9 +378,11 @@ def load_bvh(
     """
     path = check_file(path)
     check_rig_options(markers_per_bone, marker_spread, scale)
-    if position_mode not in ("add", "replace"):
-        raise OptionError(f"position_mode must be 'add' or 'replace', got {position_mode!r}")
+    if position_mode not in ("auto", "add", "replace"):
+        raise OptionError(f"position_mode must be 'auto', 'add' or 'replace', got {position_mode!r}")
     bvh = read_bvh(path)
+    if position_mode == "auto":
+        position_mode = guess_position_mode(bvh)
     rig = bvh_rig(bvh, position_mode)
     return rig_to_trajectories(
         rig,
@@ -363,5 +393,6 @@ def load_bvh(
         scale=scale,
         up_axis=1,
         frame_rate=1.0 / bvh.frame_time,
-        meta={"source": str(path), "format": "bvh", "units": units, "frame_time": bvh.frame_time},
+        meta={"source": str(path), "format": "bvh", "units": units, "frame_time": bvh.frame_time,
+              "position_mode": position_mode},
     )

@@ -78,8 +78,8 @@ def _skeleton(path: Path, meta: dict, k: int) -> tuple[list[str], list[tuple[int
     try:
         names = [node_names[i] for i in ids]
         pos = {i: j for j, i in enumerate(ids)}
-        edges = [(pos[l["source"]], pos[l["target"]]) for l, t in zip(sk.get("links", []), _edge_types(sk.get("links", [])))
-                 if t == 1]
+        links = sk.get("links", [])
+        edges = [(pos[lk["source"]], pos[lk["target"]]) for lk, t in zip(links, _edge_types(links)) if t == 1]
     except (IndexError, KeyError, TypeError):
         raise fail(path, "malformed skeleton in the metadata") from None
     return names, edges
@@ -95,7 +95,7 @@ def _video_info(path: Path, meta: dict, f: Any, v: int) -> tuple[str | None, tup
         return None, None
     info = videos[v]
     backend = info.get("backend", {}) if isinstance(info, dict) else {}
-    name = backend.get("filename") or info.get("filename") if isinstance(info, dict) else None
+    name = (backend.get("filename") or info.get("filename")) if isinstance(info, dict) else None
     size = None
     shape = backend.get("shape")
     if isinstance(shape, (list, tuple)) and len(shape) >= 3:
