@@ -22,7 +22,8 @@ from stickfigure.io.markersets import SEGMENTS, contract_tree, segment_ground_tr
         ("LANK", "l_shin"), ("RHEE", "r_foot"), ("LTOE", "l_foot"), ("RMT5", "r_foot"),
         ("Head_FL", "head"), ("Hip_BR", "pelvis"), ("Radius_L", "l_forearm"), ("Knee_R", "r_thigh"),
         ("BigToe_L", "l_foot"), ("l_knee", "l_thigh"), ("LeftAnkle", "l_shin"), (" Subj:LWRA ", "l_forearm"),
-        ("*12", None), ("KNEE", None), ("marker7", None), ("", None),
+        ("LFIN2", "l_hand"), ("RTHI1", "r_thigh"), ("ARIEL", "head"), ("LKNI", "l_thigh"), ("RMED", "r_shin"),
+        ("*12", None), ("KNEE", None), ("marker7", None), ("", None), ("L5", None),
     ],
 )
 def test_marker_names_map_to_segments(name, segment):

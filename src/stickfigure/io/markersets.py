@@ -74,7 +74,8 @@ _CENTRAL = {
     "STRN": "thorax", "STER": "thorax", "STERNUM": "thorax", "SPINE": "thorax", "BACK": "thorax",
     "XIPH": "thorax", "RBAK": "thorax", "RBAC": "thorax", "LBAK": "thorax", "LBAC": "thorax",
     "SACR": "pelvis", "SACRUM": "pelvis",
-    "HEAD": "head", "FHD": "head", "BHD": "head", "HEADTOP": "head", "FOREHEAD": "head",
+    "HEAD": "head", "FHD": "head", "BHD": "head", "HEADTOP": "head", "FOREHEAD": "head", "ARIEL": "head",
+    "THD": "head",
 }
 
 # Landmark bases that take a side; "head", "thorax", "pelvis" ignore the side.
@@ -84,14 +85,15 @@ _SIDED = {
     "UPA": "upperarm", "UPPERARM": "upperarm", "HUM": "upperarm",
     "ELB": "upperarm", "ELBOW": "upperarm",
     "FRM": "forearm", "FOREARM": "forearm",
-    "WRA": "forearm", "WRB": "forearm", "WRI": "forearm", "WRIST": "forearm",
+    "WRA": "forearm", "WRB": "forearm", "WRI": "forearm", "WRIST": "forearm", "RSP": "forearm", "USP": "forearm",
     "RADIUS": "forearm", "ULNA": "forearm", "RAD": "forearm", "ULN": "forearm",
-    "FIN": "hand", "FINGER": "hand", "HAND": "hand", "HND": "hand", "MCP": "hand", "THUMB": "hand",
+    "FIN": "hand", "FINGER": "hand", "HAND": "hand", "HND": "hand", "MCP": "hand", "THUMB": "hand", "THM": "hand",
     "FWT": "pelvis", "BWT": "pelvis", "ASI": "pelvis", "PSI": "pelvis", "ASIS": "pelvis", "PSIS": "pelvis",
     "HIP": "pelvis", "ILC": "pelvis", "WAIST": "pelvis", "GTR": "thigh",
     "THI": "thigh", "THIGH": "thigh", "KNE": "thigh", "KNEE": "thigh", "FEM": "thigh", "KNEM": "thigh",
+    "KNI": "thigh", "KNM": "thigh", "MKN": "thigh",
     "SHN": "shin", "SHIN": "shin", "TIB": "shin", "TIBIA": "shin", "ANK": "shin", "ANKLE": "shin",
-    "ANKM": "shin", "MMA": "shin", "LMA": "shin",
+    "ANKM": "shin", "MMA": "shin", "LMA": "shin", "MAL": "shin", "MED": "shin", "TT": "shin", "TUB": "shin",
     "HEE": "foot", "HEEL": "foot", "TOE": "foot", "BIGTOE": "foot", "MT1": "foot", "MT2": "foot",
     "MT5": "foot", "PINKIE": "foot", "FOOT": "foot", "FMH": "foot", "SMH": "foot",
     "VMH": "foot", "TOETIP": "foot",
@@ -150,7 +152,13 @@ def segment_of(label: str) -> str | None:
             seg = _segment(joined[:-len(word)], _TRAILING_SIDE[word])
             if seg:
                 return seg
-    return _segment(joined, None)
+    seg = _segment(joined, None)
+    if seg is None and joined[-1].isdigit() and not joined.rstrip("0123456789").endswith("MT"):
+        # Numbered extra markers ("LFIN2", "RTHI1") belong where their base name does.
+        base = joined.rstrip("0123456789")
+        if base and base != joined:
+            return segment_of(base)
+    return seg
 
 
 def contract_tree(parent: dict[str, str | None], present: Sequence[str]) -> list[tuple[str, str]]:
