@@ -239,6 +239,7 @@ def test_shot_cut_ends_every_track(tmp_path):
     path = _write(tmp_path / "cut.avi", _frames(40, seed=4, cut_at=22), "FFV1")
     traj = track_video(path, min_length=3, min_motion=0)
     assert traj.meta["shots"] == [0, 22]
+    assert track_video(path, start=10, min_length=3, min_motion=0).meta["shots"] == [10, 22]
     obs = traj.observed
     assert not np.any(obs[:, 21] & obs[:, 22])  # no trajectory crosses the cut
     assert np.all(np.isin(traj.meta["track_shot"], [0, 1]))
@@ -298,6 +299,9 @@ def test_best_window_picks_most_observations():
     assert win.n_points == 40 and win.n_frames == 50
     assert win.meta["frame_offset"] == 10
     assert win.missing_fraction == 0.0
+    # Choosing again from the choice changes nothing.
+    again = best_window(win, coverage=1.0, min_points=5, max_points=None)
+    assert again.n_points == win.n_points and again.n_frames == win.n_frames
 
 
 def test_best_window_complete_data_is_unchanged(small_figure):
@@ -314,6 +318,9 @@ def test_best_window_respects_shots_and_max_points():
     w = win.meta["window"]
     assert w["start"] >= 30 and w["stop"] == 80  # the longer shot
     assert win.n_points == 25
+    # Shot starts are video frame numbers: a slice starting inside the first shot still sees the cut.
+    part = best_window(traj.slice(frames=slice(20, 80)), max_points=None)
+    assert part.meta["frame_offset"] >= 30
     # Spread: points 0..59 lie along a line every 3 px; the kept ones cover it.
     m = np.nanmean(win.xy, axis=1)
     assert np.ptp(m[:, 0]) > 150

@@ -21,7 +21,8 @@ them from any video OpenCV can decode:
    histograms of consecutive frames (hue–saturation and value, on a small copy
    of the frame) exceeds ``cut_threshold``. Within a shot that distance stays
    small even under fast camera motion, while a cut changes the whole
-   histogram. The first frame of every shot is in ``meta["shots"]``.
+   histogram. The first frame of every shot (video frame number) is in
+   ``meta["shots"]``.
 5. **Clean-up.** Tracks shorter than ``min_length`` and *static* tracks are
    removed. A track is static when its path, after removing the dominant
    (camera/background) motion, stays within ``min_motion`` of the image
@@ -210,7 +211,7 @@ def track_video(
         ``xy`` (P, F, 2) in pixels (y down), NaN outside each track's lifetime,
         with ``image_size``, ``frame_rate``, ``video`` (absolute path) and
         ``meta``: ``frame_offset`` (= ``start``), ``shots`` (first frame of
-        each shot, relative to ``start``), ``roi``, ``tracker`` (the settings)
+        each shot, as a frame number of the video, like ``frame_offset``), ``roi``, ``tracker`` (the settings)
         and ``tracking`` (counts: detected, too short, static, kept, seconds).
 
     Raises
@@ -410,7 +411,7 @@ def track_video(
     meta: dict[str, Any] = {
         "source": "track",
         "frame_offset": start,
-        "shots": [int(s) for s in shots],
+        "shots": [start + int(s) for s in shots],  # video frame numbers: they survive slicing
         "roi": [rx, ry, rw, rh],
         "track_start": first_frame.astype(np.int64),
         "track_shot": shot_of_frame[first_frame].astype(np.int64),
@@ -578,7 +579,10 @@ def best_window(
     Lmax = F if max_frames is None else max(Lmin, min(F, int(max_frames)))
     cs = np.zeros((P, F + 1), np.int32)
     np.cumsum(obs, axis=1, out=cs[:, 1:])
-    shots = np.asarray(traj.meta.get("shots", [0]), np.int64)
+    # Shot starts are video frame numbers; make them relative to this (possibly sliced) trajectory.
+    offset = int(traj.meta.get("frame_offset", 0))
+    shots = np.asarray(traj.meta.get("shots", [offset]), np.int64) - offset
+    shots = np.unique(np.r_[0, shots[(shots > 0) & (shots < F)]])
     shot_id = np.searchsorted(shots, np.arange(F), side="right") - 1
     best = (-1, 0, 0, 0, 0)  # (score, length, -start, start, n)
     best_any = best

@@ -1,0 +1,169 @@
+"""learn(): input -> (tracks) -> skeleton -> animation + report, on synthetic data, a synthetic video and real files."""
+
+from __future__ import annotations
+
+import cv2
+import imageio.v2 as imageio
+import numpy as np
+import pytest
+
+import stickfigure as sf
+from stickfigure.pipeline import learn
+from stickfigure.report import write_report
+
+#: The method the pipeline tests fit end to end without help (no given segmentation).
+END_TO_END = next((m for m in ("em", "multibody-sfm", "yan-pollefeys") if m in sf.available_methods()), None)
+
+
+def _needs_end_to_end(fn):
+    return pytest.mark.skipif(END_TO_END is None, reason="no method that segments by itself is installed yet")(fn)
+
+
+def _segmentable(method: str) -> bool:
+    """Whether ``method`` can segment tracks by itself here (its shared segmentation module is installed)."""
+    try:
+        sf.fit(sf.synthetic.random_figure(n_sticks=2, frames=20, seed=0), method=method, random_state=0)
+    except ModuleNotFoundError:
+        return False
+    return True
+
+
+def _video_frames(path):
+    cap = cv2.VideoCapture(str(path))
+    frames = []
+    while True:
+        ok, img = cap.read()
+        if not ok:
+            break
+        frames.append(img)
+    cap.release()
+    return frames
+
+
+@pytest.fixture(scope="module")
+def walker():
+    return sf.synthetic.walker(n_frames=40, seed=0)
+
+
+def test_learn_from_trajectories(tmp_path, walker):
+    out = learn(walker, tmp_path / "out", method="mi-tree", labels=walker.labels_true)
+    assert set(out) == {"points", "model", "model_arrays", "animation", "report"}
+    for p in out.values():
+        assert p.exists() and p.stat().st_size > 0
+    skel = sf.Skeleton.load(out["model"])
+    assert skel.method == "mi-tree" and skel.n_points == walker.n_points
+    assert skel.n_sticks == walker.n_parts_true
+    # What was fitted is saved beside the model: the report can be rebuilt from the files alone.
+    pts = sf.load(out["points"])
+    assert pts.shape == walker.shape
+    np.testing.assert_allclose(pts.xy, walker.xy)
+    again = write_report(skel, pts, tmp_path / "again.html")
+    assert "mi-tree" in again.read_text(encoding="utf-8")
+    # The animation has every frame.
+    frames = _video_frames(out["animation"])
+    assert len(frames) == walker.n_frames and frames[0].std() > 5
+
+
+def test_learn_writes_gif_and_respects_frames(tmp_path, walker):
+    out = learn(walker, tmp_path / "o", method="mi-tree", labels=walker.labels_true, frames=(5, 25),
+                animation="gif")
+    assert out["animation"].suffix == ".gif"
+    pts = sf.load(out["points"])
+    assert pts.n_frames == 20 and pts.meta["frame_offset"] == 5
+    assert len(imageio.mimread(out["animation"])) == 20
+
+
+def test_learn_from_3d_projects(tmp_path):
+    walker3d = sf.synthetic.walker(n_frames=30, seed=1, project=False)
+    out = learn(walker3d, tmp_path / "o", method="mi-tree", labels=walker3d.labels_true, project="side")
+    pts = sf.load(out["points"])
+    assert pts.n_dims == 2 and pts.meta["projection"]["azimuth"] == 0.0
+
+
+def test_learn_bad_input(tmp_path, walker):
+    with pytest.raises(ValueError, match="unknown method"):
+        learn(walker, tmp_path / "o", method="no-such-method")
+    with pytest.raises(ValueError, match="not found"):
+        learn(tmp_path / "missing.c3d", tmp_path / "o", method="mi-tree")
+    with pytest.raises(ValueError, match="frames"):
+        learn(walker, tmp_path / "o", method="mi-tree", frames=(10, 5))
+    with pytest.raises(ValueError, match="animation"):
+        learn(walker, tmp_path / "o", method="mi-tree", animation="avi")
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(ValueError, match="not a folder"):
+        learn(walker, tmp_path / "file", method="mi-tree")
+
+
+def test_unknown_method_fails_before_tracking(tmp_path):
+    bad = tmp_path / "broken.mp4"
+    bad.write_bytes(b"not a video")
+    with pytest.raises(ValueError, match="unknown method"):
+        learn(bad, tmp_path / "o", method="no-such-method")
+    if END_TO_END is not None:
+        with pytest.raises(ValueError, match="broken.mp4"):
+            learn(bad, tmp_path / "o", method=END_TO_END)
+
+
+def _two_limb_video(path, n=40):
+    """A textured 'arm': an upper limb turning about a fixed shoulder and a forearm turning about the elbow."""
+    rng = np.random.default_rng(0)
+    H, W = 200, 260
+    bg = np.full((H, W), 35, np.uint8)
+    tex = [cv2.GaussianBlur(rng.uniform(0, 255, (24, 90)).astype(np.float32), (0, 0), 1.6).astype(np.uint8)
+           for _ in range(2)]
+    shoulder = np.array([70.0, 100.0])
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), 20.0, (W, H))
+    for f in range(n):
+        img = bg.copy()
+        a1 = np.radians(-20 + 40 * np.sin(2 * np.pi * f / n))
+        a2 = a1 + np.radians(50 * np.sin(2 * np.pi * f / n + 1.0))
+        elbow = shoulder + 80 * np.array([np.cos(a1), np.sin(a1)])
+        for t, origin, ang in ((tex[0], shoulder, a1), (tex[1], elbow, a2)):
+            c, s = np.cos(ang), np.sin(ang)
+            M = np.array([[c, -s, origin[0] + 12 * s], [s, c, origin[1] - 12 * c]])
+            warped = cv2.warpAffine(t, M, (W, H), flags=cv2.INTER_LINEAR)
+            mask = cv2.warpAffine(np.full_like(t, 255), M, (W, H), flags=cv2.INTER_NEAREST) > 0
+            img[mask] = warped[mask]
+        w.write(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
+    w.release()
+    return path
+
+
+@_needs_end_to_end
+def test_learn_from_video(tmp_path):
+    if not _segmentable(END_TO_END):
+        pytest.skip(f"{END_TO_END} cannot segment yet (stickfigure.segmentation is not installed)")
+    video = _two_limb_video(tmp_path / "arm.avi")
+    out = learn(video, tmp_path / "o", method=END_TO_END)
+    assert {"tracks", "points", "model", "animation", "report"} <= set(out)
+    tracks = sf.load(out["tracks"])
+    assert tracks.video.endswith("arm.avi") and tracks.image_size == (260, 200)
+    pts = sf.load(out["points"])
+    skel = sf.Skeleton.load(out["model"])
+    assert skel.n_points == pts.n_points >= 10
+    assert skel.n_sticks >= 2
+    html = out["report"].read_text(encoding="utf-8")
+    assert "data:image/jpeg;base64," in html  # the video frames are in the report
+
+
+@pytest.mark.data
+@pytest.mark.slow
+@_needs_end_to_end
+def test_learn_bikes(tmp_path, data_dir):
+    out = learn(data_dir / "video" / "bikes.mp4", tmp_path / "bikes", method=END_TO_END)
+    skel = sf.Skeleton.load(out["model"])
+    assert skel.n_sticks >= 2
+    assert out["animation"].stat().st_size > 10_000
+
+
+@pytest.mark.data
+def test_learn_from_mocap_file(tmp_path, data_dir):
+    path = data_dir / "mocap" / "131_01.bvh"
+    P = sf.load(path).n_points
+    # This test is about reading, slicing and projecting the file; any segmentation will do.
+    labels = None if _segmentable("mi-tree") else np.arange(P) // 3
+    out = learn(path, tmp_path / "bvh", method="mi-tree", frames=(0, 120), labels=labels)
+    pts = sf.load(out["points"])
+    assert pts.n_dims == 2 and pts.n_frames == 120 and pts.n_points == P
+    assert pts.meta["projection"]["azimuth"] == 45.0  # the isometric view
+    assert "131_01.bvh" in out["report"].read_text(encoding="utf-8")
