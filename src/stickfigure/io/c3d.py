@@ -268,6 +268,7 @@ def load_c3d(
             "units": units,
             "unlabelled": unlabelled,
             "first_frame": int(header["first_frame"]),
+            "frame_offset": int(header["first_frame"]),  # 0-based index of row 0 in the capture
             "dropped_points": dropped,
             "subjects": subjects,
             "joint_names": joint_names,
