@@ -88,6 +88,13 @@ def _comment_header(traj: Trajectories) -> list[str]:
     return lines
 
 
+def _quote(field: str) -> str:
+    """CSV quoting (RFC 4180) when the field needs it; the csv module of Python 3.11 leaves a bare CR unquoted."""
+    if any(ch in field for ch in ',"\r\n') or field != field.strip():
+        return '"' + field.replace('"', '""') + '"'
+    return field
+
+
 def save_csv(traj: Trajectories, path: str | os.PathLike) -> Path:
     """Write trajectories as a long-format CSV (atomically).
 
@@ -106,32 +113,21 @@ def save_csv(traj: Trajectories, path: str | os.PathLike) -> Path:
     p_idx, f_idx = np.nonzero(obs)  # row-major: grouped by point, frames ascending
     coords = traj.xy[p_idx, f_idx]
     label = traj.labels_true
-    buf = _io.StringIO()
-    for line in _comment_header(traj):
-        buf.write(line.replace("\n", " ") + "\n")
-    w = csv.writer(buf, lineterminator="\n")
+    lines = [line.replace("\n", " ").replace("\r", " ") for line in _comment_header(traj)]
     header = ["point", "frame", "x", "y"] + (["z"] if D == 3 else []) + (["label_true"] if label is not None else [])
-    w.writerow(header)
+    lines.append(",".join(header))
+    qnames = [_quote(n) for n in names]
+    lab = [f",{int(v)}" for v in label] if label is not None else [""] * P
     # repr() of a Python float is the shortest string that reads back exactly.
-    cvals = coords.tolist()
-    never = set(np.flatnonzero(~obs.any(axis=1)).tolist())
-    rows_by_point: dict[int, list[list[Any]]] = {}
-    for p, f, c in zip(p_idx.tolist(), f_idx.tolist(), cvals):
-        row = [names[p], f + offset, *(repr(v) for v in c)]
-        if label is not None:
-            row.append(int(label[p]))
-        rows_by_point.setdefault(p, []).append(row)
+    rows_by_point: dict[int, list[str]] = {}
+    for p, f, c in zip(p_idx.tolist(), f_idx.tolist(), coords.tolist()):
+        rows_by_point.setdefault(p, []).append(f"{qnames[p]},{f + offset},{','.join(map(repr, c))}{lab[p]}")
     for p in range(P):
-        if p in never:
-            row = [names[p], offset] + [""] * D
-            if label is not None:
-                row.append(int(label[p]))
-            w.writerow(row)
-        else:
-            w.writerows(rows_by_point[p])
+        lines += rows_by_point.get(p) or [f"{qnames[p]},{offset}{',' * D}{lab[p]}"]  # never observed: empty row
+    text = "\n".join(lines) + "\n"
     with atomic_path(path) as tmp:
         with open(tmp, "w", encoding="utf-8", newline="") as fh:
-            fh.write(buf.getvalue())
+            fh.write(text)
     return path
 
 
