@@ -162,8 +162,8 @@ def test_learn_from_mocap_file(tmp_path, data_dir):
     P = sf.load(path).n_points
     # This test is about reading, slicing and projecting the file; any segmentation will do.
     labels = None if _segmentable("mi-tree") else np.arange(P) // 3
-    out = learn(path, tmp_path / "bvh", method="mi-tree", frames=(0, 120), labels=labels)
+    out = learn(path, tmp_path / "bvh", method="mi-tree", frames=(0, 60), labels=labels)
     pts = sf.load(out["points"])
-    assert pts.n_dims == 2 and pts.n_frames == 120 and pts.n_points == P
+    assert pts.n_dims == 2 and pts.n_frames == 60 and pts.n_points == P
     assert pts.meta["projection"]["azimuth"] == 45.0  # the isometric view
     assert "131_01.bvh" in out["report"].read_text(encoding="utf-8")
