@@ -344,6 +344,10 @@ def _method_params(args: argparse.Namespace, method: str) -> dict[str, Any]:
 
     params = _key_values(args.param, "--param")
     cls = get_method(method)
+    try:  # a wrong parameter name fails here, before any work
+        cls(**params)
+    except TypeError as exc:
+        raise TypeError(f"bad parameter for method {method!r}: {exc}") from None
     if not args.quiet and "progress" in cls().get_params() and "progress" not in params:
         params["progress"] = True
     return params
