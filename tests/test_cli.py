@@ -89,7 +89,7 @@ def test_methods_lists_registered_methods(capsys):
     (["render", "{d}/missing.json", "{fig}", "-o", "{d}/out.png"], "no such model file"),
     (["render", "{fig}", "{fig}", "-o", "{d}/out.png"], "not a stickfigure model"),
     (["export-angles", "{model}", "-o", "{d}/a.csv", "--frames", "0:5"], "needs an INPUT"),
-    (["export-bvh", "{model}", "{other}", "-o", "{d}/a.bvh"], "points"),
+    (["export-bvh", "{model}", "{other}", "-o", "{d}/a.bvh"], "the model has 24 points but other.npz has"),
     (["track", "{d}/missing.mp4", "-o", "{d}/t.npz"], "no such video"),
     (["track", "{fig}", "-o", "{d}/t.npz", "--roi", "1,2"], "X,Y,W,H"),
     (["nonsense"], "invalid choice"),
@@ -145,13 +145,18 @@ def test_fit_with_loader_options(method, work, tmp_path, capsys):
     assert "model written to" in capsys.readouterr().out
 
 
-def test_fit_projects_3d_mocap(tmp_path):
+def test_fit_projects_3d_mocap(tmp_path, capsys):
     walker = sf.synthetic.walker(n_frames=20, project=False, seed=0)
     sf.save(walker, tmp_path / "walk3d.npz")
     labels = json.dumps(walker.labels_true.tolist())
     assert main(["-q", "fit", str(tmp_path / "walk3d.npz"), "--project", "30,20", "--method", "mi-tree",
                  "--param", f"labels={labels}", "-o", str(tmp_path / "w.json")]) == 0
     assert sf.Skeleton.load(tmp_path / "w.json").n_dims == 2
+    # Using the model with the 3D file again needs the same projection; the error says so.
+    assert main(["render", str(tmp_path / "w.json"), str(tmp_path / "walk3d.npz"), "-o", str(tmp_path / "w.png")]) == 2
+    assert "--project" in _error_line(capsys)
+    assert main(["-q", "render", str(tmp_path / "w.json"), str(tmp_path / "walk3d.npz"), "--project", "30,20",
+                 "-o", str(tmp_path / "w.png")]) == 0
 
 
 @pytest.mark.xfail(reason="skeleton.py: Skeleton.impute calls get_method(m).impute (the estimator's instance "

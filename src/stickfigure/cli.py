@@ -332,6 +332,18 @@ def _load_model(path: str) -> Any:
     return Skeleton.load(path)
 
 
+def _check_match(skeleton: Any, traj: Any, path: str) -> None:
+    """A model and its INPUT must have the same points and dimension; say how to fix it."""
+    name = Path(path).name
+    if skeleton.n_dims == 2 and traj.n_dims == 3:
+        raise ValueError(f"the model was fitted to 2D data but {name} is 3D: add --project with the view used for fit")
+    if skeleton.n_dims != traj.n_dims:
+        raise ValueError(f"the model was fitted to {skeleton.n_dims}D data but {name} is {traj.n_dims}D")
+    if skeleton.n_points != traj.n_points:
+        raise ValueError(f"the model has {skeleton.n_points} points but {name} has {traj.n_points}: use the same "
+                         "input and reading options as for fit")
+
+
 def _check_suffix(path: str, allowed: Sequence[str], what: str) -> Path:
     p = Path(path)
     if p.suffix.lower() not in allowed:
@@ -390,6 +402,7 @@ def _cmd_impute(args: argparse.Namespace) -> int:
     out = _check_suffix(args.output, (".csv", ".npz"), "the output")
     skeleton = _load_model(args.model)
     traj = _load_input(args, args.input)
+    _check_match(skeleton, traj, args.input)
     filled = skeleton.impute(traj)
     n_missing = int((~traj.observed).sum())
     path = sf.save(traj.with_xy(filled), out) or out
@@ -404,6 +417,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
     out = _check_suffix(args.output, (".png", ".pdf", ".svg", ".gif", ".mp4"), "the output")
     skeleton = _load_model(args.model)
     traj = _load_input(args, args.input, frames=False)
+    _check_match(skeleton, traj, args.input)
     frames = plot.parse_frame_range(args.frames) if args.frames else None
     if frames is not None:
         plot.select_frames(frames, traj.n_frames)  # a bad selection fails before any work
@@ -456,6 +470,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         raise _Unavailable(f"evaluate needs stickfigure.metrics, which is not installed ({exc})") from None
     skeleton = _load_model(args.model)
     traj = _load_input(args, args.input)
+    _check_match(skeleton, traj, args.input)
     if traj.labels_true is None:
         raise ValueError(f"{Path(args.input).name} has no ground truth (labels_true) to score against")
     scores = _jsonable(dict(score_skeleton(skeleton, traj)))
@@ -477,13 +492,15 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _optional_input(args: argparse.Namespace) -> Any:
+def _optional_input(args: argparse.Namespace, skeleton: Any) -> Any:
     if args.input is None:
         for opt in ("frames", "subsample", "project", "load_options"):
             if getattr(args, opt, None):
                 raise ValueError(f"--{opt.replace('_', '-')} needs an INPUT file")
         return None
-    return _load_input(args, args.input)
+    traj = _load_input(args, args.input)
+    _check_match(skeleton, traj, args.input)
+    return traj
 
 
 def _cmd_export_angles(args: argparse.Namespace) -> int:
@@ -491,7 +508,7 @@ def _cmd_export_angles(args: argparse.Namespace) -> int:
 
     out = _check_suffix(args.output, (".csv",), "the output")
     skeleton = _load_model(args.model)
-    path = write_angles_csv(skeleton, out, traj=_optional_input(args))
+    path = write_angles_csv(skeleton, out, traj=_optional_input(args, skeleton))
     print(f"joint angles of {len(skeleton.edges)} joints written to {path}")
     return 0
 
@@ -501,7 +518,7 @@ def _cmd_export_bvh(args: argparse.Namespace) -> int:
 
     out = _check_suffix(args.output, (".bvh",), "the output")
     skeleton = _load_model(args.model)
-    path = write_bvh(skeleton, out, traj=_optional_input(args), frame_rate=args.fps,
+    path = write_bvh(skeleton, out, traj=_optional_input(args, skeleton), frame_rate=args.fps,
                      lengths="rigid" if args.rigid else "exact")
     print(f"BVH with {skeleton.n_sticks} sticks written to {path}")
     return 0
@@ -566,6 +583,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
     out = _check_suffix(args.output, (".html", ".htm"), "the output")
     skeleton = _load_model(args.model)
     traj = _load_input(args, args.input)
+    _check_match(skeleton, traj, args.input)
     path = write_report(skeleton, traj, out, title=args.title)
     print(f"report written to {path}")
     return 0
