@@ -302,3 +302,15 @@ def test_demo(tmp_path, capsys):
     assert f"method: {method}" in summary and "sticks" in summary
     sk = sf.Skeleton.load(out / "model.json")
     assert sk.n_points == 55
+
+
+def test_demo_figures():
+    from stickfigure.demo import make_figure
+
+    walker = make_figure("walker", n_frames=20)
+    assert walker.shape == (55, 20, 2) and walker.n_parts_true == 11
+    random = make_figure("random", seed=1)
+    assert random.n_frames == 120 and random.n_parts_true == 6
+    assert np.array_equal(make_figure("random", seed=1).xy, random.xy)  # seeded
+    with pytest.raises(ValueError, match="figure"):
+        make_figure("horse")

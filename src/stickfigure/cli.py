@@ -159,7 +159,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="output folder (default: stickfigure-demo)")
     p.add_argument("--method", help="method to fit (default: em, or multibody-sfm where em is not installed)")
     p.add_argument("--seed", type=int, default=0, help="seed of the figure and the method (default 0)")
-    p.add_argument("--n-frames", type=_positive_int, default=60, help="length of the walk (default 60)")
+    p.add_argument("--figure", choices=("walker", "random"), default=None,
+                   help="the built-in figure: a walking person or a random 3D tree of sticks (default: see "
+                        "'stickfigure.demo.DEFAULT_FIGURE')")
+    p.add_argument("--n-frames", type=_positive_int, default=None, help="number of frames")
     p.add_argument("--no-occlusion", action="store_true", help="do not hide any observations")
     p.add_argument("--param", action="append", metavar="NAME=VALUE", help="method parameter, repeatable")
     p.set_defaults(run=_cmd_demo)
@@ -210,6 +213,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--width", type=_positive_int, default=480, help="animation width in pixels (default 480)")
     p.add_argument("--imputed", action="store_true", help="draw missing points at their imputed positions")
     p.add_argument("--no-video", action="store_true", help="do not draw the video under tracked points")
+    p.add_argument("--view", metavar="VIEW",
+                   help="how to look at a 3D model: isometric, front, side, top or AZIMUTH,ELEVATION "
+                        "(default: the first two coordinates)")
     _add_input_options(p, frames=False)
     p.set_defaults(run=_cmd_render)
 
@@ -423,6 +429,10 @@ def _cmd_render(args: argparse.Namespace) -> int:
         plot.select_frames(frames, traj.n_frames)  # a bad selection fails before any work
     p = pose(skeleton, traj)
     kw: dict[str, Any] = {"pose": p}
+    if args.view is not None:
+        if traj.n_dims != 3:
+            raise ValueError("--view applies to 3D models; 2D data are drawn as they are")
+        kw["view"] = _view(args.view)
     if args.imputed:
         kw["imputed"] = p.points
     video = False if args.no_video else None
@@ -594,7 +604,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
     params = _key_values(args.param, "--param")
     t0 = time.perf_counter()
-    paths = run_demo(args.output, method=args.method, seed=args.seed, n_frames=args.n_frames,
+    paths = run_demo(args.output, method=args.method, seed=args.seed, n_frames=args.n_frames, figure=args.figure,
                      occlusion=not args.no_occlusion, progress=not args.quiet,
                      say=lambda m: _say(args, m), **params)
     print(Path(paths["summary"]).read_text(encoding="utf-8").rstrip())

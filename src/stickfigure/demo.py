@@ -1,11 +1,13 @@
-"""The built-in demonstration: the whole pipeline on a synthetic walking figure.
+"""The built-in demonstration: the whole pipeline on a synthetic figure.
 
-:func:`run_demo` makes a walker (11 rigid sticks, points scattered around
-each bone, seen from a three-quarter view, 1% noise) with about 12% of its
-observations hidden by the Ross et al. occluder, learns its skeleton with the
-main method, and writes into one folder:
+:func:`run_demo` makes a figure with known structure, ``"walker"`` (a
+walking person: 11 rigid sticks, points scattered around each bone, seen from
+a three-quarter view) or ``"random"`` (a random 3D tree of 6 sticks seen from
+a random view, as in the Ross et al. experiments), both with 1% noise, hides
+about 12% of its observations with the Ross et al. occluder, learns its
+skeleton with the main method, and writes into one folder:
 
-``walker.npz``
+``walker.npz`` (or ``random.npz``)
     the input trajectories, with their ground truth, so every other command
     can be tried on them (``stickfigure render demo/model.json demo/walker.npz -o x.gif``);
 ``model.json`` + ``model.npz``
@@ -13,7 +15,7 @@ main method, and writes into one folder:
 ``frames.png``
     six frames with the skeleton drawn over the points (hidden points as
     hollow markers at their imputed positions, crosses at the truth);
-``walker.gif``
+``walker.gif`` (or ``random.gif``)
     the animation;
 ``summary.txt``
     what was found: sticks, joints, and the scores against the known truth.
@@ -27,11 +29,29 @@ from typing import Any, Callable
 
 import numpy as np
 
-__all__ = ["run_demo", "default_method", "DEMO_VIEW"]
+__all__ = ["run_demo", "default_method", "make_figure", "DEMO_VIEW", "DEFAULT_FIGURE"]
 
 #: Camera of the demo walker (azimuth, elevation in degrees): a three-quarter
 #: view, so that the left and right limbs do not hide each other.
 DEMO_VIEW = (-60.0, 12.0)
+
+#: The figure ``stickfigure demo`` uses unless told otherwise.
+DEFAULT_FIGURE = "walker"
+
+_FRAMES = {"walker": 60, "random": 120}
+
+
+def make_figure(figure: str = DEFAULT_FIGURE, *, n_frames: int | None = None, seed: Any = 0) -> Any:
+    """The demo's input with ground truth: ``"walker"`` or ``"random"`` (see the module docstring)."""
+    import stickfigure as sf
+
+    if figure not in _FRAMES:
+        raise ValueError(f"figure must be 'walker' or 'random', got {figure!r}")
+    n_frames = n_frames or _FRAMES[figure]
+    if figure == "walker":
+        return sf.synthetic.walker(n_frames=n_frames, points_per_stick=5, noise=0.01, seed=seed, cycles=2.0,
+                                   view=DEMO_VIEW)
+    return sf.synthetic.random_figure(n_sticks=6, frames=n_frames, noise=0.01, seed=seed)
 
 
 def default_method() -> str:
@@ -55,7 +75,7 @@ def _scores(skeleton: Any, traj: Any) -> dict[str, Any] | None:
 
 
 def run_demo(outdir: str | Path = "stickfigure-demo", *, method: str | None = None, seed: int = 0,
-             n_frames: int = 60, occlusion: bool = True, progress: bool = False,
+             figure: str | None = None, n_frames: int | None = None, occlusion: bool = True, progress: bool = False,
              say: Callable[[str], None] | None = None, **params: Any) -> dict[str, Path]:
     """Run the demonstration and write its files.
 
@@ -67,8 +87,10 @@ def run_demo(outdir: str | Path = "stickfigure-demo", *, method: str | None = No
         Method to fit; default :func:`default_method`.
     seed : int
         Seed of the figure, the occlusion and the method.
-    n_frames : int
-        Length of the walk (two gait cycles).
+    figure : {"walker", "random"}, optional
+        The figure (default :data:`DEFAULT_FIGURE`).
+    n_frames : int, optional
+        Number of frames (default 60 for the walker, two gait cycles; 120 for the random figure).
     occlusion : bool
         Hide observations with the sweeping bar plus random drop-outs.
     progress : bool
@@ -94,16 +116,16 @@ def run_demo(outdir: str | Path = "stickfigure-demo", *, method: str | None = No
     if outdir.exists() and not outdir.is_dir():
         raise ValueError(f"the output folder is a file: {outdir}")
     outdir.mkdir(parents=True, exist_ok=True)
+    figure = figure or DEFAULT_FIGURE
     rng = np.random.default_rng(seed)
-    full = sf.synthetic.walker(n_frames=n_frames, points_per_stick=5, noise=0.01, seed=rng, cycles=2.0,
-                               view=DEMO_VIEW)
+    full = make_figure(figure, n_frames=n_frames, seed=rng)
     traj = full
     if occlusion:
         traj, _ = sf.synthetic.occlude(full, seed=rng)
     P, F, _ = traj.shape
-    say(f"walker: {P} points x {F} frames, {full.n_parts_true} sticks, "
+    say(f"{figure}: {P} points x {F} frames, {full.n_parts_true} sticks, "
         f"{100 * traj.missing_fraction:.0f}% of observations hidden")
-    paths = {"input": outdir / "walker.npz"}
+    paths = {"input": outdir / f"{figure}.npz"}
     sf.save(traj, paths["input"])
 
     est_cls = sf.get_method(method)
@@ -120,13 +142,14 @@ def run_demo(outdir: str | Path = "stickfigure-demo", *, method: str | None = No
     imputed = pose.points  # predicted positions of the hidden points (where the method has motions)
     paths["picture"] = outdir / "frames.png"
     plot.plot_frames(traj, skeleton, path=paths["picture"], pose=pose, imputed=imputed, truth=full.xy)
-    paths["animation"] = outdir / "walker.gif"
+    paths["animation"] = outdir / f"{figure}.gif"
     plot.animate(traj, skeleton, paths["animation"], pose=pose, imputed=imputed, width=400, progress=progress)
 
     scores = _scores(skeleton, traj)
+    view = full.meta.get("view") or DEMO_VIEW
     lines = [
-        "stickfigure demo: a synthetic walker",
-        f"input: {P} points x {F} frames (2D, seen from azimuth {DEMO_VIEW[0]:g}, elevation {DEMO_VIEW[1]:g}), "
+        f"stickfigure demo: a synthetic {'walking figure' if figure == 'walker' else 'random figure'}",
+        f"input: {P} points x {F} frames (2D, seen from azimuth {view[0]:.0f}, elevation {view[1]:.0f}), "
         f"{100 * traj.missing_fraction:.1f}% missing",
         f"truth: {full.n_parts_true} sticks ({', '.join(full.part_names or [])}), {len(full.edges_true or [])} joints",
         f"method: {method} (seed {seed}), {fit_s:.1f} s",
