@@ -6,6 +6,8 @@ import csv
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import stickfigure as sf
 from stickfigure import export
@@ -248,3 +250,19 @@ def test_bvh_errors(tmp_path, planar, planar_skeleton):
     with pytest.raises(ValueError, match="frame_rate"):
         export.write_bvh(planar_skeleton, tmp_path / "x.bvh", frame_rate=-1)
     assert not (tmp_path / "x.bvh").exists()
+
+
+# ------------------------------------------------------------------ property
+@settings(max_examples=25, deadline=None)
+@given(phi=st.floats(-np.pi, np.pi), scale=st.floats(0.1, 10.0), shift=st.tuples(st.floats(-50, 50),
+                                                                                 st.floats(-50, 50)))
+def test_joint_angles_invariant_to_similarity_transforms(phi, scale, shift):
+    """Rotating, scaling and moving the whole scene in the image leaves every joint angle unchanged."""
+    arm = sf.synthetic.arm(n_frames=12, noise=0.01, seed=4)
+    c, s = np.cos(phi), np.sin(phi)
+    T = scale * np.array([[c, -s], [s, c]])
+    moved = arm.copy(xy=arm.xy @ T.T + np.asarray(shift), joints_true=arm.joints_true @ T.T + np.asarray(shift))
+    a0, _ = export.joint_angles(truth_skeleton(arm, motions=False), arm)
+    a1, _ = export.joint_angles(truth_skeleton(moved, motions=False), moved)
+    diff = (a1 - a0 + 180) % 360 - 180
+    assert np.abs(diff).max() < 1e-6
