@@ -107,16 +107,16 @@ def test_unknown_method_fails_before_tracking(tmp_path):
 def _two_limb_video(path, n=40):
     """A textured 'arm': an upper limb turning about a fixed shoulder and a forearm turning about the elbow."""
     rng = np.random.default_rng(0)
-    H, W = 200, 260
+    H, W = 300, 300
     bg = np.full((H, W), 35, np.uint8)
     tex = [cv2.GaussianBlur(rng.uniform(0, 255, (24, 90)).astype(np.float32), (0, 0), 1.6).astype(np.uint8)
            for _ in range(2)]
-    shoulder = np.array([70.0, 100.0])
+    shoulder = np.array([90.0, 150.0])  # both limbs stay inside the frame
     w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), 20.0, (W, H))
     for f in range(n):
         img = bg.copy()
-        a1 = np.radians(-20 + 40 * np.sin(2 * np.pi * f / n))
-        a2 = a1 + np.radians(50 * np.sin(2 * np.pi * f / n + 1.0))
+        a1 = np.radians(-10 + 30 * np.sin(2 * np.pi * f / n))
+        a2 = a1 + np.radians(40 * np.sin(2 * np.pi * f / n + 1.0))
         elbow = shoulder + 80 * np.array([np.cos(a1), np.sin(a1)])
         for t, origin, ang in ((tex[0], shoulder, a1), (tex[1], elbow, a2)):
             c, s = np.cos(ang), np.sin(ang)
@@ -137,7 +137,7 @@ def test_learn_from_video(tmp_path):
     out = learn(video, tmp_path / "o", method=END_TO_END)
     assert {"tracks", "points", "model", "animation", "report"} <= set(out)
     tracks = sf.load(out["tracks"])
-    assert tracks.video.endswith("arm.avi") and tracks.image_size == (260, 200)
+    assert tracks.video.endswith("arm.avi") and tracks.image_size == (300, 300)
     pts = sf.load(out["points"])
     skel = sf.Skeleton.load(out["model"])
     assert skel.n_points == pts.n_points >= 10

@@ -114,17 +114,24 @@ def _outline_distance(traj, which):
     return np.select([which == 0, which == 1], [d_sq, d_dc], 0.0)
 
 
-def _patch_tracks(traj, typical: float = 1.0, worst: float = 5.0) -> None:
+def _patch_tracks(traj, typical: float = 1.0, worst: float = 4.0) -> None:
     """Tracks follow the known motion.
 
-    Tracks whose window lies inside an object: 90% within ``typical`` pixels
-    over the whole clip. Features next to an outline mix two motions in their
-    window and drift by a pixel or two; every track stays within ``worst``.
+    Tracks whose window lies inside an object, over the whole clip: 90% within
+    ``typical / 2`` pixels on the translating square, within ``2 * typical``
+    on the turning disc (LK models a window's motion as a translation, so a
+    turning texture costs it some accuracy). Features next to an outline mix
+    two motions in their window and drift by a pixel or two; every track stays
+    within ``worst``.
     """
     err, which = _track_errors(traj)
     inner = _outline_distance(traj, which) > 8  # half the default LK window
+    for obj, tol in ((0, 0.5 * typical), (1, 2.0 * typical)):
+        sel = inner & (which == obj)
+        if sel.sum() >= 3:
+            q = np.quantile(err[sel], 0.9)
+            assert q < tol, f"90% of inner tracks on object {obj} within {q:.2f} px"
     assert inner.sum() >= 5
-    assert np.quantile(err[inner], 0.9) < typical, f"90% of inner tracks within {np.quantile(err[inner], 0.9):.2f} px"
     assert np.median(err) < typical, f"median track error {np.median(err):.2f} px"
     assert err.max() < worst, f"worst track error {err.max():.2f} px"
 

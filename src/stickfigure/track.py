@@ -193,8 +193,8 @@ def track_video(
         Forward–backward error (pixels) above which a point is lost.
     min_ncc : float
         Least normalised cross-correlation between a point's neighbourhood
-        (side ``2 * (window // 4) + 1``) now and when it was detected, best over
-        in-plane rotations (15-degree steps); below it the point is lost. Catches points sliding along an occluding edge, which
+        (side ``2 * (window // 3) + 1``) now and when it was detected, best over
+        in-plane rotations (10-degree steps); below it the point is lost. Catches points sliding along an occluding edge, which
         the forward-backward check lets through. -1 disables the test.
     redetect_every : int
         Frames between re-detections.
@@ -285,7 +285,7 @@ def track_video(
         next_id = 0
         n_fb_lost = 0
         n_ncc_lost = 0
-        ncc_radius = max(2, window // 4)
+        ncc_radius = max(2, window // 3)
         tmpl = np.zeros((0, (2 * ncc_radius + 1) ** 2))
         prev_gray = None
         last_detect = -redetect_every
@@ -464,12 +464,12 @@ def _template_ncc(img: np.ndarray, p: np.ndarray, tmpl: np.ndarray, r: int, thre
     """Correlation of each point's neighbourhood with its template, best over in-plane rotations, shape (n,).
 
     Points on a turning limb keep their appearance up to a rotation, so a
-    point below ``threshold`` is tried again at rotations in 15-degree steps
+    point below ``threshold`` is tried again at rotations in 10-degree steps
     before it is declared lost.
     """
     ncc = (_neighbourhoods(img, p, r) * tmpl).sum(axis=1)
     low = np.flatnonzero(ncc < threshold)
-    for ang in np.radians(np.r_[np.arange(15, 181, 15), -np.arange(15, 180, 15)]):
+    for ang in np.radians(np.r_[np.arange(10, 181, 10), -np.arange(10, 180, 10)]):
         if not low.size:
             break
         c = (_neighbourhoods(img, p[low], r, ang) * tmpl[low]).sum(axis=1)
