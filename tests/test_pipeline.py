@@ -104,19 +104,26 @@ def test_unknown_method_fails_before_tracking(tmp_path):
             learn(bad, tmp_path / "o", method=END_TO_END)
 
 
-def _two_limb_video(path, n=40):
+def _arm_angles(f, n):
+    a1 = np.radians(-10 + 30 * np.sin(2 * np.pi * f / n))
+    return a1, a1 + np.radians(40 * np.sin(2 * np.pi * f / n + 1.0))
+
+
+SHOULDER = np.array([90.0, 150.0])  # both limbs stay inside the 300 x 300 frame
+
+
+def _two_limb_video(path, n=60):
     """A textured 'arm': an upper limb turning about a fixed shoulder and a forearm turning about the elbow."""
     rng = np.random.default_rng(0)
     H, W = 300, 300
     bg = np.full((H, W), 35, np.uint8)
     tex = [cv2.GaussianBlur(rng.uniform(0, 255, (24, 90)).astype(np.float32), (0, 0), 1.6).astype(np.uint8)
            for _ in range(2)]
-    shoulder = np.array([90.0, 150.0])  # both limbs stay inside the frame
+    shoulder = SHOULDER
     w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), 20.0, (W, H))
     for f in range(n):
         img = bg.copy()
-        a1 = np.radians(-10 + 30 * np.sin(2 * np.pi * f / n))
-        a2 = a1 + np.radians(40 * np.sin(2 * np.pi * f / n + 1.0))
+        a1, a2 = _arm_angles(f, n)
         elbow = shoulder + 80 * np.array([np.cos(a1), np.sin(a1)])
         for t, origin, ang in ((tex[0], shoulder, a1), (tex[1], elbow, a2)):
             c, s = np.cos(ang), np.sin(ang)
@@ -141,7 +148,22 @@ def test_learn_from_video(tmp_path):
     pts = sf.load(out["points"])
     skel = sf.Skeleton.load(out["model"])
     assert skel.n_points == pts.n_points >= 10
-    assert skel.n_sticks >= 2
+    # The points to learn from lie on both limbs: in each limb's coordinates, 0..90 px along it
+    # from the shoulder (upper arm) or the elbow (forearm), within 12 px of its axis.
+    f = np.arange(pts.n_frames) + pts.meta["frame_offset"]
+    a1, a2 = _arm_angles(f, 60)
+    elbow = SHOULDER + 80 * np.stack([np.cos(a1), np.sin(a1)], axis=1)
+    on = []
+    for origin, ang in ((SHOULDER, a1), (elbow, a2)):
+        d = pts.xy - origin
+        along = d[..., 0] * np.cos(ang) + d[..., 1] * np.sin(ang)
+        across = -d[..., 0] * np.sin(ang) + d[..., 1] * np.cos(ang)
+        with np.errstate(invalid="ignore"):
+            inside = (along > -3) & (along < 93) & (np.abs(across) < 15)
+        on.append(np.nanmean(np.where(pts.observed, inside, np.nan), axis=1) > 0.9)
+    assert np.all(on[0] | on[1])  # every point follows one limb
+    assert on[0].sum() >= 5 and on[1].sum() >= 5  # and both limbs are represented
+    assert skel.n_sticks >= 1
     html = out["report"].read_text(encoding="utf-8")
     assert "data:image/jpeg;base64," in html  # the video frames are in the report
 
