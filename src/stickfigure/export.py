@@ -636,7 +636,9 @@ def write_bvh(skeleton: Skeleton, path: str | os.PathLike, traj: Trajectories | 
         if D == 2:
             z = np.degrees(np.arctan2(Rl[:, 1, 0], Rl[:, 0, 0]))
             return np.column_stack([z, np.zeros(F), np.zeros(F)])
-        return Rotation.from_matrix(Rl).as_euler("ZXY", degrees=True)
+        with warnings.catch_warnings():  # gimbal lock: the angles still compose to the same rotation
+            warnings.simplefilter("ignore", UserWarning)
+            return Rotation.from_matrix(Rl).as_euler("ZXY", degrees=True)
 
     def emit(s: int, depth: int, Rp: np.ndarray | None, pos_p: np.ndarray | None) -> None:
         ind = "  " * depth
