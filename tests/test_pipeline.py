@@ -42,7 +42,7 @@ def _video_frames(path):
 
 @pytest.fixture(scope="module")
 def walker():
-    return sf.synthetic.walker(n_frames=40, seed=0)
+    return sf.synthetic.walker(n_frames=24, seed=0)
 
 
 def test_learn_from_trajectories(tmp_path, walker):
@@ -65,12 +65,12 @@ def test_learn_from_trajectories(tmp_path, walker):
 
 
 def test_learn_writes_gif_and_respects_frames(tmp_path, walker):
-    out = learn(walker, tmp_path / "o", method="mi-tree", labels=walker.labels_true, frames=(5, 25),
+    out = learn(walker, tmp_path / "o", method="mi-tree", labels=walker.labels_true, frames=(5, 17),
                 animation="gif")
     assert out["animation"].suffix == ".gif"
     pts = sf.load(out["points"])
-    assert pts.n_frames == 20 and pts.meta["frame_offset"] == 5
-    assert len(imageio.mimread(out["animation"])) == 20
+    assert pts.n_frames == 12 and pts.meta["frame_offset"] == 5
+    assert len(imageio.mimread(out["animation"])) == 12
 
 
 def test_learn_from_3d_projects(tmp_path):
@@ -183,7 +183,7 @@ def test_learn_from_mocap_file(tmp_path, data_dir):
     path = data_dir / "mocap" / "131_01.bvh"
     P = sf.load(path).n_points
     # This test is about reading, slicing and projecting the file; any segmentation will do.
-    labels = None if _segmentable("mi-tree") else np.arange(P) // 3
+    labels = np.arange(P) // 3
     out = learn(path, tmp_path / "bvh", method="mi-tree", frames=(0, 60), labels=labels)
     pts = sf.load(out["points"])
     assert pts.n_dims == 2 and pts.n_frames == 60 and pts.n_points == P
