@@ -151,6 +151,26 @@ def test_report_over_video_frames(tmp_path):
     assert "could not be read" in html
 
 
+def _small_figure_in_big_frame() -> tuple[sf.Skeleton, sf.Trajectories]:
+    rng = np.random.default_rng(1)
+    xy = 500 + rng.normal(size=(8, 10, 2)) * 10 + np.arange(10)[None, :, None]
+    traj = sf.Trajectories(xy, image_size=(1000, 1000), frame_rate=10)
+    return sf.Skeleton(method="x", labels=np.repeat([0, 1], 4), n_sticks=2), traj
+
+
+def test_player_zooms_to_a_small_figure(figure_and_model):
+    skel, traj = _small_figure_in_big_frame()
+    x0, y0, w, h = player_data(skel, traj)["focus"]
+    pts = traj.xy.reshape(-1, 2)
+    assert x0 < pts[:, 0].min() and x0 + w > pts[:, 0].max() and y0 < pts[:, 1].min() and y0 + h > pts[:, 1].max()
+    assert w * h < 0.1 * 1000 * 1000
+    # A figure filling the frame, or data without an image: no zoom.
+    big = traj.with_xy(np.random.default_rng(2).uniform(50, 950, size=traj.xy.shape))
+    assert player_data(skel, big)["focus"] is None
+    t2, s2 = figure_and_model
+    assert player_data(s2, t2)["focus"] is None
+
+
 def test_report_caps_frames(figure_and_model):
     traj, skel = figure_and_model
     data = player_data(skel, traj, max_frames=20)
@@ -410,6 +430,22 @@ def test_report_over_video_in_chromium(browser, video_report):
     browser.js(s, "(() => { const b = document.querySelector('input[data-layer=video]'); b.click(); })()")
     without = browser.js(s, sample)
     assert abs(with_video[0] - 30) < 12 and without[0] < 20
+
+
+@pytest.mark.browser
+@needs_browser
+def test_report_zoom_in_chromium(browser, tmp_path):
+    skel, traj = _small_figure_in_big_frame()
+    s, state = _check_page(browser, write_report(skel, traj, tmp_path / "zoom.html"))
+    assert state["selfcheck"] == "ok", state.get("errors")
+    size = "(() => { const c = document.querySelector('.player canvas'); return [c.width, c.height]; })()"
+    zoomed = browser.js(s, size)
+    assert browser.js(s, "document.querySelector('input[data-layer=zoom]').checked") is True
+    browser.js(s, "document.querySelector('input[data-layer=zoom]').click()")
+    full = browser.js(s, size)
+    assert full == [720, 720]  # the whole 1000 x 1000 frame, fitted into 960 x 720
+    assert zoomed != full
+    assert browser.problems() == []
 
 
 @pytest.mark.browser

@@ -150,7 +150,7 @@ def _player(skeleton: Skeleton, traj: Trajectories) -> str:
         legend += (f'<span><span class="swatch" style="background:{_data.UNASSIGNED}"></span>'
                    f'unassigned ({int((skeleton.labels < 0).sum())} pts)</span>')
     layers = [("video", "video"), ("points", "points"), ("imputed", "filled-in points"), ("sticks", "sticks"),
-              ("joints", "joints"), ("labels", "labels"), ("trails", "trails")]
+              ("joints", "joints"), ("labels", "labels"), ("trails", "trails"), ("zoom", "zoom to the figure")]
     boxes = "".join(f'<label><input type="checkbox" data-layer="{k}"> {esc(t)}</label>' for k, t in layers)
     return f"""
 <div class="player" data-player="main">

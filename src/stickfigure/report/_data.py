@@ -112,6 +112,33 @@ def video_frames(traj: Trajectories, frames: np.ndarray, *, max_width: int = 640
     return [got[int(f) + offset] for f in frames]
 
 
+def _focus_box(xy: np.ndarray, width: int, height: int, *, max_share: float = 0.4) -> list[float] | None:
+    """The box (x, y, w, h) around the figure, with a margin, when it covers less than ``max_share`` of the frame.
+
+    The player starts zoomed to it, so a small figure in a large frame (two
+    flies in a 1024² arena) is not a speck.
+    """
+    xy = xy[np.isfinite(xy).all(axis=1)]
+    if not xy.size:
+        return None
+    lo = np.percentile(xy, 1, axis=0)
+    hi = np.percentile(xy, 99, axis=0)
+    margin = 0.15 * float(np.max(hi - lo)) + 10.0
+    x0, y0 = max(0.0, lo[0] - margin), max(0.0, lo[1] - margin)
+    x1, y1 = min(float(width), hi[0] + margin), min(float(height), hi[1] + margin)
+    # Keep the frame's aspect ratio loosely: never thinner than 1:3.
+    w, h = x1 - x0, y1 - y0
+    if w <= 0 or h <= 0 or w * h > max_share * width * height:
+        return None
+    if w < h / 3:
+        grow = (h / 3 - w) / 2
+        x0, x1 = max(0.0, x0 - grow), min(float(width), x1 + grow)
+    if h < w / 3:
+        grow = (w / 3 - h) / 2
+        y0, y1 = max(0.0, y0 - grow), min(float(height), y1 + grow)
+    return [round(x0, 1), round(y0, 1), round(x1 - x0, 1), round(y1 - y0, 1)]
+
+
 def player_data(skeleton: Skeleton, traj: Trajectories, *, max_frames: int = 150,
                 pose: dict[str, np.ndarray] | None = None, with_video: bool = True) -> dict[str, Any]:
     """The JSON the page's player draws.
@@ -128,9 +155,12 @@ def player_data(skeleton: Skeleton, traj: Trajectories, *, max_frames: int = 150
     step = max(1, math.ceil(F / max_frames))
     fidx = np.arange(0, F, step)
     pixels = traj.image_size is not None
+    focus = None
     if pixels:
         width, height = traj.image_size  # type: ignore[misc]
         xmin, ymax, decimals = 0.0, 0.0, 1
+        focus = _focus_box(np.concatenate([pz["points"].reshape(-1, 2), pz["segments"].reshape(-1, 2),
+                                           pz["joints"].reshape(-1, 2)]), width, height)
     else:
         allxy = np.concatenate([pz["points"].reshape(-1, 2), pz["segments"].reshape(-1, 2),
                                 pz["joints"].reshape(-1, 2)])
@@ -169,6 +199,7 @@ def player_data(skeleton: Skeleton, traj: Trajectories, *, max_frames: int = 150
         "joints": [_rounded(j[fidx], decimals) for j in pz["joints"]],
         "stick_label_xy": label_xy,
         "step": step,
+        "focus": focus,
     }
     if pixels and with_video:
         uris = video_frames(traj, fidx)

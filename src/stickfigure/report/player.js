@@ -28,27 +28,21 @@
     this.playing = false;
     this.speed = 1;
     this.drawn = 0;
-    this.show = { video: true, points: true, sticks: true, joints: true, trails: false, labels: true, imputed: true };
+    this.show = { video: true, points: true, sticks: true, joints: true, trails: false, labels: true, imputed: true,
+                  zoom: !!d.focus };
     this.backgrounds = [];
     this.build();
   }
 
   Player.prototype.build = function () {
     var d = this.d, self = this;
-    var maxW = 960;
-    var natW = d.width, natH = d.height;
-    var s = d.pixels ? Math.min(1.5, maxW / natW, 720 / natH) : Math.min(maxW / natW, 560 / natH);
-    this.scale = s;
-    this.pad = d.pixels ? 0 : 16;
     var canvas = document.createElement("canvas");
-    canvas.width = Math.round(natW * s) + 2 * this.pad;
-    canvas.height = Math.round(natH * s) + 2 * this.pad;
     canvas.setAttribute("tabindex", "0");
     canvas.setAttribute("aria-label", "skeleton animation; space plays or pauses, arrow keys step");
     this.canvas = canvas;
     this.ctx = canvas.getContext("2d");
-    var stage = this.el.querySelector(".stage");
-    stage.appendChild(canvas);
+    this.el.querySelector(".stage").appendChild(canvas);
+    this.setView(!!d.focus);
 
     var c = this.el.querySelector(".controls");
     this.btn = c.querySelector("button.play");
@@ -64,7 +58,12 @@
       var layer = box.getAttribute("data-layer");
       if (!(layer in self.show)) return;
       box.checked = self.show[layer];
-      box.addEventListener("change", function () { self.show[layer] = box.checked; self.draw(); });
+      if (layer === "zoom" && !self.d.focus) { box.disabled = true; box.parentNode.style.display = "none"; }
+      box.addEventListener("change", function () {
+        self.show[layer] = box.checked;
+        if (layer === "zoom") self.setView(box.checked);
+        self.draw();
+      });
     });
     canvas.addEventListener("keydown", function (ev) {
       if (ev.key === " ") { ev.preventDefault(); self.toggle(); }
@@ -85,15 +84,27 @@
     this.draw();
   };
 
+  /* The part of the picture shown: the whole frame, or (zoom) the box around the figure. */
+  Player.prototype.setView = function (zoom) {
+    var d = this.d;
+    var v = zoom && d.focus ? d.focus : (d.pixels ? [0, 0, d.width, d.height] : [d.xmin, d.ymax - d.height, d.width, d.height]);
+    this.view = v;
+    var s = d.pixels ? Math.min(zoom ? 3 : 1.5, 960 / v[2], 720 / v[3]) : Math.min(960 / v[2], 560 / v[3]);
+    this.scale = s;
+    this.pad = d.pixels ? 0 : 16;
+    this.canvas.width = Math.round(v[2] * s) + 2 * this.pad;
+    this.canvas.height = Math.round(v[3] * s) + 2 * this.pad;
+  };
+
   Player.prototype.bgIndex = function (f) {
     var idx = this.d.background_index;
     return idx ? idx[f] : -1;
   };
 
   Player.prototype.toCanvas = function (x, y) {
-    var d = this.d, s = this.scale, p = this.pad;
-    if (d.pixels) return [x * s, y * s];
-    return [(x - d.xmin) * s + p, (d.ymax - y) * s + p];
+    var d = this.d, s = this.scale, p = this.pad, v = this.view;
+    if (d.pixels) return [(x - v[0]) * s, (y - v[1]) * s];
+    return [(x - v[0]) * s + p, (v[1] + v[3] - y) * s + p];
   };
 
   Player.prototype.draw = function () {
@@ -104,7 +115,8 @@
     var bi = this.bgIndex(f);
     var img = bi >= 0 ? this.backgrounds[bi] : null;
     if (this.show.video && img && img.complete && img.naturalWidth > 0) {
-      ctx.drawImage(img, 0, 0, W, H);
+      var k = img.naturalWidth / d.width, v = this.view;  // frames are stored downscaled
+      ctx.drawImage(img, v[0] * k, v[1] * k, v[2] * k, v[3] * k, 0, 0, W, H);
     } else if (!d.pixels) {
       this.grid();
     }
