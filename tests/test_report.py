@@ -36,10 +36,15 @@ from stickfigure.track import track_video
 @pytest.fixture(scope="module")
 def figure_and_model():
     """An occluded synthetic figure and a mi-tree model given its true segmentation (fast)."""
+    occ, skel, _ = _figure_model_truth()
+    return occ, skel
+
+
+def _figure_model_truth():
     traj = sf.synthetic.random_figure(n_sticks=4, frames=50, seed=3)
     occ, _ = sf.synthetic.occlude(traj, seed=1)
     skel = sf.fit(occ, method="mi-tree", labels=traj.labels_true, random_state=0)
-    return occ, skel
+    return occ, skel, traj
 
 
 def _stage_skeleton(traj: sf.Trajectories) -> sf.Skeleton:
@@ -102,6 +107,22 @@ def test_report_tables_and_player_data(figure_and_model):
     assert "mutual information" in html.lower()
     assert "imputation RMSE" in html and "linear interpolation" in html
     assert "adjusted Rand index" in html
+
+
+def test_report_scores_hidden_entries_against_truth():
+    occ, skel, full = _figure_model_truth()
+    from stickfigure.report._data import impute, quality
+
+    q = quality(skel, occ, truth=full)
+    hidden = ~occ.observed
+    filled = impute(skel, occ)
+    err = np.sqrt(np.mean(np.sum((filled[hidden] - full.xy[hidden]) ** 2, axis=1)))
+    assert q["hidden"]["n_hidden"] == int(hidden.sum())
+    assert q["hidden"]["rmse"] == pytest.approx(err)
+    html = unescape(render_report(skel, occ, truth=full))
+    assert f"error on the {int(hidden.sum())} entries missing from the input" in html
+    with pytest.raises(ValueError, match="truth"):
+        quality(skel, occ, truth=full.xy[:, :10])
 
 
 def test_report_without_plot_module_shows_raw_info(figure_and_model):

@@ -279,6 +279,13 @@ def _quality(q: dict[str, Any]) -> str:
         rows.append(("the same entries by linear interpolation in time (baseline)", imp["interp_rmse"], unit))
         if imp.get("filled_fraction", 1.0) < 1:
             rows.append(("share of hidden entries the model could fill", imp["filled_fraction"], ""))
+    hid = q.get("hidden")
+    if hid:
+        rows.append((f"error on the {hid['n_hidden']} entries missing from the input (true positions given)",
+                     hid["rmse"], unit))
+        rows.append(("the same entries by linear interpolation in time (baseline)", hid["interp_rmse"], unit))
+        if hid.get("filled_fraction", 1.0) < 1:
+            rows.append(("share of them the model could fill", hid["filled_fraction"], ""))
     tr = q.get("truth")
     if tr:
         if "ari" in tr:
@@ -289,7 +296,7 @@ def _quality(q: dict[str, Any]) -> str:
             if isinstance(v, (int, float)):
                 rows.append((f"tree vs true tree: {k}", v, ""))
     body = table(["measure", "value", ""], rows, numeric=[False, True, False]) if rows else ""
-    for k in ("fit_rmse_error", "impute_error"):
+    for k in ("fit_rmse_error", "impute_error", "hidden_error"):
         if k in q:
             body += f'<p class="warn">{esc(k.split("_")[0])}: {esc(q[k])}</p>'
     if tr:
@@ -318,7 +325,7 @@ def _params(skeleton: Skeleton, traj: Trajectories) -> str:
 
 
 def render_report(skeleton: Skeleton, traj: Trajectories | np.ndarray, *, title: str | None = None,
-                  max_frames: int = 150, impute_check: bool = True) -> str:
+                  max_frames: int = 150, impute_check: bool = True, truth: Any = None) -> str:
     """The report's HTML as a string (see :func:`write_report`)."""
     import matplotlib
 
@@ -330,7 +337,7 @@ def render_report(skeleton: Skeleton, traj: Trajectories | np.ndarray, *, title:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         with matplotlib.rc_context({"figure.max_open_warning": 0}):
-            q = _data.quality(skeleton, traj) if impute_check else _data.quality(skeleton, traj, hide=0)
+            q = _data.quality(skeleton, traj, hide=0.1 if impute_check else 0, truth=truth)
             pz = _data.flat_pose(skeleton, traj)
             player = _data.player_data(skeleton, traj, max_frames=max_frames, pose=pz)
             structure, notes = _structure(skeleton, traj, player, pz)
@@ -359,7 +366,8 @@ def render_report(skeleton: Skeleton, traj: Trajectories | np.ndarray, *, title:
 
 
 def write_report(skeleton: Skeleton, traj: Trajectories | np.ndarray, path: str | os.PathLike, *,
-                 title: str | None = None, max_frames: int = 150, impute_check: bool = True) -> Path:
+                 title: str | None = None, max_frames: int = 150, impute_check: bool = True,
+                 truth: Any = None) -> Path:
     """Write the skeleton's report as one self-contained HTML file.
 
     Parameters
@@ -379,6 +387,10 @@ def write_report(skeleton: Skeleton, traj: Trajectories | np.ndarray, path: str 
     impute_check : bool
         Run the held-out imputation check (hides 10% of the observations and
         asks the model to fill them).
+    truth : Trajectories or ndarray, shape (P, F, D), optional
+        True positions of the entries missing from ``traj`` (e.g. the data
+        before :func:`stickfigure.synthetic.occlude`): the report scores the
+        model's fill-in on them.
 
     Returns
     -------
@@ -393,6 +405,7 @@ def write_report(skeleton: Skeleton, traj: Trajectories | np.ndarray, path: str 
     path = Path(path)
     if path.exists() and path.is_dir():
         raise ValueError(f"report path is a directory: {path}")
-    html = render_report(skeleton, traj, title=title, max_frames=max_frames, impute_check=impute_check)
+    html = render_report(skeleton, traj, title=title, max_frames=max_frames, impute_check=impute_check,
+                         truth=truth)
     atomic_write_text(path, html)
     return path

@@ -248,7 +248,8 @@ def _interpolate_in_time(xy: np.ndarray) -> np.ndarray:
     return out
 
 
-def quality(skeleton: Skeleton, traj: Trajectories, *, hide: float = 0.1, seed: int = 0) -> dict[str, Any]:
+def quality(skeleton: Skeleton, traj: Trajectories, *, hide: float = 0.1, seed: int = 0,
+            truth: np.ndarray | None = None) -> dict[str, Any]:
     """How well the skeleton explains its data.
 
     * ``fit_rmse``: RMS distance between the observed positions and those the
@@ -257,6 +258,10 @@ def quality(skeleton: Skeleton, traj: Trajectories, *, hide: float = 0.1, seed: 
       observed entries (chosen at random, seeded) are hidden, the model's
       :meth:`Skeleton.impute` fills them, and the RMS error on them is compared
       with filling them by linear interpolation in time, a model-free baseline.
+    * ``hidden``: with ``truth`` (P, F, D), the true positions of entries
+      missing from ``traj`` (e.g. the data before an occlusion), the RMS
+      error of the model's fill-in on those entries, beside linear
+      interpolation in time.
     * ``truth``: with ground-truth labels, the adjusted Rand index and the
       misclassification rate of the sticks, and edge precision/recall/F1 when
       the true tree is known.
@@ -266,6 +271,7 @@ def quality(skeleton: Skeleton, traj: Trajectories, *, hide: float = 0.1, seed: 
     """
     out: dict[str, Any] = {"units": "pixels" if traj.image_size is not None else "data units"}
     obs = traj.observed
+    true_xy = truth
     if skeleton.motions is not None and skeleton.local is not None and skeleton.n_points == traj.n_points:
         try:
             pred = skeleton.predict()
@@ -291,6 +297,23 @@ def quality(skeleton: Skeleton, traj: Trajectories, *, hide: float = 0.1, seed: 
             }
         except Exception as exc:
             out["impute_error"] = f"{type(exc).__name__}: {exc}"
+    if true_xy is not None:
+        true_xy = np.asarray(true_xy.xy if isinstance(true_xy, Trajectories) else true_xy, dtype=float)
+        if true_xy.shape != traj.xy.shape:
+            raise ValueError(f"truth must have the shape of the trajectories {traj.xy.shape}, got {true_xy.shape}")
+        hidden = ~obs & np.isfinite(true_xy).all(axis=2)
+        if hidden.any():
+            try:
+                filled = impute(skeleton, traj)[hidden]
+                ok = np.isfinite(filled).all(axis=1)
+                out["hidden"] = {
+                    "n_hidden": int(hidden.sum()),
+                    "rmse": _rmse(filled[ok], true_xy[hidden][ok]) if ok.any() else None,
+                    "filled_fraction": float(ok.mean()),
+                    "interp_rmse": _rmse(_interpolate_in_time(traj.xy)[hidden], true_xy[hidden]),
+                }
+            except Exception as exc:
+                out["hidden_error"] = f"{type(exc).__name__}: {exc}"
     if traj.labels_true is not None and traj.n_points == skeleton.n_points:
         out["truth"] = _truth_scores(skeleton, traj)
     return out
