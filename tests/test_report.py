@@ -52,7 +52,8 @@ def _stage_skeleton(traj: sf.Trajectories) -> sf.Skeleton:
     return sf.Skeleton(
         method="no-such-method", labels=traj.labels_true, n_sticks=traj.n_parts_true, edges=traj.edges_true,
         joints=traj.joints_true, log_likelihood=-123.5,
-        info={"stages": [{"stage": k, "n_sticks": 5 - k, "objective": -200.0 + 30 * k} for k in range(4)],
+        info={"stages": [{"stage": k, "n_sticks": 5 - k, "objective": -200.0 + 30 * k,
+                          "labels": list(range(29))} for k in range(4)], "selected_stage": 3,
               "objective": [-200.0, -170.0, -140.0, -123.5], "mutual_information": [[0, 1.5], [1.5, 0]],
               "converged": True, "note": "hand-made for the test"},
     )
@@ -130,8 +131,11 @@ def test_report_without_plot_module_shows_raw_info(figure_and_model):
     skel = _stage_skeleton(traj)
     html = unescape(render_report(skel, traj))
     assert "has no module for 'no-such-method'" in html
-    # Per-stage records become a table, the objective series a sparkline, the matrix a shaded table.
+    # Per-stage records become a table (the selected stage marked, long lists summarised by their
+    # shape), the objective series a sparkline, the matrix a shaded table.
     assert "<h3>stages</h3>" in html and html.count("<td class=\"num\">-170</td>") == 1
+    assert "3 ◀ selected" in html
+    assert "[29 values]" in html
     assert "<svg class=\"spark\"" in html
     assert "<h3>mutual_information</h3>" in html
     # Quality: no motions, no impute for an unknown method -> said, not raised.

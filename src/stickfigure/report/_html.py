@@ -114,8 +114,44 @@ def _matrix(v: Any) -> np.ndarray | None:
 
 
 def _compact(v: Any, limit: int = 120) -> str:
+    """A short text for a cell: small values as JSON, long or nested lists as their shape."""
+    if isinstance(v, (list, tuple)):
+        shape = np.shape(v) if _rectangular(v) else (len(v),)
+        if len(v) > 8 or (v and isinstance(v[0], (list, tuple)) and len(shape) > 1 and np.prod(shape) > 8):
+            return f"[{' × '.join(str(n) for n in shape)} values]"
     s = json.dumps(v, default=str) if not isinstance(v, str) else v
     return s if len(s) <= limit else s[: limit - 1] + "…"
+
+
+def _rectangular(v: Any) -> bool:
+    try:
+        np.asarray(v, dtype=float)
+        return True
+    except (TypeError, ValueError):
+        return False
+
+
+def _records(key: str, v: list[dict[str, Any]], selected: Any = None) -> str:
+    """A list of records (e.g. one per merge stage) as a table, numeric columns also as sparklines."""
+    keys: list[str] = []
+    for r in v:
+        keys += [k for k in r if k not in keys]
+    numeric = [all(_is_num(r.get(k)) or r.get(k) is None for r in v) for k in keys]
+    rows = []
+    for i, r in enumerate(v):
+        cells = [fmt(r.get(k)) if numeric[j] else _compact(r.get(k)) for j, k in enumerate(keys)]
+        rows.append([esc(f"{i} ◀ selected" if selected == i else str(i))] + [esc(c) for c in cells])
+    out = f"<h3>{esc(key)}</h3>" + table(["#"] + keys, rows, numeric=[False] + numeric,
+                                          raw=[True] * (len(keys) + 1))
+    spark = []
+    for j, k in enumerate(keys):
+        vals = [r.get(k) for r in v]
+        if numeric[j] and len(v) >= 2 and len({x for x in vals if x is not None}) > 1:
+            mark = "max" if any(w in k.lower() for w in ("objective", "likelihood", "log_joint", "score")) else None
+            spark.append(f"<span class=\"muted\">{esc(k)}</span> {sparkline(vals, width=160, height=34, mark_best=mark)}")
+    if spark:
+        out += f"<p>{' &nbsp; '.join(spark)}</p>"
+    return out
 
 
 def info_view(info: dict[str, Any], *, depth: int = 0) -> str:
@@ -143,13 +179,8 @@ def info_view(info: dict[str, Any], *, depth: int = 0) -> str:
         elif (m := _matrix(v)) is not None and max(m.shape) <= 30:
             parts.append(f"<h3>{esc(key)}</h3>{_heat_table(m)}")
         elif isinstance(v, (list, tuple)) and v and all(isinstance(r, dict) for r in v) and len(v) <= 200:
-            keys: list[str] = []
-            for r in v:
-                keys += [k for k in r if k not in keys]
-            rows = [[_compact(r.get(k)) if not (_is_num(r.get(k)) or r.get(k) is None) else r.get(k) for k in keys]
-                    for r in v]
-            numeric = [all(_is_num(r.get(k)) or r.get(k) is None for r in v) for k in keys]
-            parts.append(f"<h3>{esc(key)}</h3>" + table(keys, rows, numeric=numeric))
+            sel = info.get("selected_stage") if key == "stages" else info.get(f"selected_{key.rstrip('s')}")
+            parts.append(_records(key, list(v), sel))
         else:
             text = json.dumps(v, indent=1, default=str)
             if len(text) > 20000:
