@@ -181,6 +181,44 @@ def test_static_background_kept_when_asked(moving_patch_video):
     assert kept.meta["tracking"]["static"] == 0
 
 
+def test_figure_on_plain_background_is_not_taken_for_the_camera(tmp_path):
+    # The only features are on the moving square: its motion must not be removed as a camera pan.
+    rng = np.random.default_rng(6)
+    tex = _texture(rng, 30, 30, blur=1.5)
+    frames = []
+    for f in range(25):
+        img = np.full((H, W), 90, np.uint8)
+        img[60:90, 20 + 2 * f:50 + 2 * f] = tex
+        frames.append(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
+    traj = track_video(_write(tmp_path / "plain.avi", frames, "FFV1"))
+    assert traj.n_points >= 5
+    assert np.nanmax(np.ptp(traj.xy[..., 0], axis=1)) > 30  # they move with the square
+
+
+def test_camera_pan_is_removed(tmp_path):
+    # The whole textured scene slides left 1.5 px/frame (a pan); a square moves against it.
+    rng = np.random.default_rng(7)
+    scene = _texture(rng, H, W + 60, blur=1.5)
+    scene = (scene.astype(np.float32) * 0.5 + 40).astype(np.uint8)
+    tex = _texture(rng, 40, 40, blur=1.5)
+    frames = []
+    for f in range(30):
+        M = np.array([[1.0, 0, -1.5 * f], [0, 1.0, 0]])
+        img = cv2.warpAffine(scene, M, (W, H), flags=cv2.INTER_CUBIC)
+        img[70:110, 40 + 3 * f:80 + 3 * f] = tex  # moves right in the image
+        frames.append(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
+    path = _write(tmp_path / "pan.avi", frames, "FFV1")
+    traj = track_video(path)
+    # What is left moves right with the square, not left with the scene.
+    dx = np.nanmedian(np.diff(traj.xy[..., 0], axis=1), axis=1)
+    assert traj.n_points >= 5
+    assert np.mean(dx > 2) > 0.9
+    # Measured in image coordinates instead, the panning background stays.
+    still = track_video(path, stabilize=False)
+    dx = np.nanmedian(np.diff(still.xy[..., 0], axis=1), axis=1)
+    assert np.sum(dx < -1) > 20
+
+
 def test_lost_points_are_nan_and_never_resurrected(tmp_path):
     # The square leaves the region of interest on the right: its points are lost, as NaN, for good.
     frames = _frames(60, seed=1)

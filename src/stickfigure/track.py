@@ -317,7 +317,7 @@ def track_video(
                         similar = ncc >= min_ncc
                         n_ncc_lost += int((good & ~similar).sum())
                         good &= similar
-                    A = _dominant_motion(old[good], nxt[good], 2 * fb_threshold)
+                    A = _dominant_motion(old[good], nxt[good], 2 * fb_threshold, float(rw * rh))
                     ids, pts, tmpl = ids[good], nxt[good].astype(np.float32), tmpl[good]
                 steps.append(A)
             if ids.size < max_points and (k - last_detect >= redetect_every or ids.size == 0 or is_cut):
@@ -478,26 +478,40 @@ def _template_ncc(img: np.ndarray, p: np.ndarray, tmpl: np.ndarray, r: int, thre
     return ncc
 
 
-def _dominant_motion(src: np.ndarray, dst: np.ndarray, threshold: float) -> np.ndarray:
-    """The motion most points agree on between two frames, as a 3x3 homography.
+def _dominant_motion(src: np.ndarray, dst: np.ndarray, threshold: float, area: float) -> np.ndarray:
+    """The camera's motion between two frames, as a 3x3 homography (the identity for a still camera).
 
     A homography is exact for a camera that only turns (pan, tilt, zoom) and for
     a planar background; RANSAC makes it the motion of the largest consistent
     set of points (the background), not of the figure moving in front of it.
     With too few points for a homography, a similarity is fitted; with fewer
     than 3, the identity.
+
+    It is taken for the camera's motion only if its inliers spread over at
+    least a quarter of the region (``area``, pixels²; the box holding the
+    middle 90% of them): against a plain background the only features may be
+    on the figure, and removing *its* motion would make it look static. When in
+    doubt the camera is taken to be still, which at worst keeps some
+    background tracks.
     """
     cv2 = _cv2()
     H = None
     n = len(src)
     thr = max(1.0, float(threshold))
+    inl = None
     if n >= 12:
-        H, _ = cv2.findHomography(src, dst, cv2.RANSAC, thr)
+        H, inl = cv2.findHomography(src, dst, cv2.RANSAC, thr)
     if H is None and n >= 3:
-        M, _ = cv2.estimateAffinePartial2D(src, dst, method=cv2.RANSAC, ransacReprojThreshold=thr)
+        M, inl = cv2.estimateAffinePartial2D(src, dst, method=cv2.RANSAC, ransacReprojThreshold=thr)
         if M is not None:
             H = np.vstack([M, [0.0, 0.0, 1.0]])
     if H is None or not np.all(np.isfinite(H)) or abs(H[2, 2]) < 1e-12:
+        return np.eye(3)
+    pts = src[inl.ravel().astype(bool)] if inl is not None else src
+    if len(pts) < 3:
+        return np.eye(3)
+    lo, hi = np.percentile(pts, 5, axis=0), np.percentile(pts, 95, axis=0)
+    if np.prod(hi - lo) < 0.25 * area:
         return np.eye(3)
     H = H / H[2, 2]
     # Keep the identity unless H explains the points clearly better: chaining
