@@ -1,0 +1,345 @@
+"""Method "em": Ross, Tarlow & Zemel, *Unsupervised learning of skeletons from motion* (ECCV 2008).
+
+A probabilistic stick-figure model (section 3) fitted by variational EM
+(section 4.1), with the structure (point-to-stick assignments and joints)
+learned by resampling assignments and greedily merging stick endpoints
+(section 4.2, Fig. 3). Modules:
+
+* :mod:`.model`: the variables, the data normalisation, the objective (eq. 4).
+* :mod:`.updates`: the EM updates (vectorised over sticks, vertices and frames).
+* :mod:`.initialise`: Affinity-Propagation groups -> per-stick SfM -> endpoints.
+* :mod:`.assign`: resampling of the assignments R.
+* :mod:`.structure`: the merge search, stages and model selection.
+
+docs/em.md derives every update and documents the defaults.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from typing import Any
+
+import numpy as np
+
+from ..._validation import check_labels, check_positive
+from ...skeleton import Skeleton
+from ...trajectories import Trajectories
+from ..base import StickEstimator, register
+from .initialise import initial_state
+from .model import Observations, Priors, StickState, chain_degree, normalise
+from .structure import EMSettings, Stage, learn_structure, run_em, stick_edges
+from .updates import complete_rotation, procrustes_step, update_endpoints
+
+__all__ = ["EMSkeleton", "fit_stages"]
+
+
+@register("em")
+class EMSkeleton(StickEstimator):
+    """Articulated skeleton by variational EM and greedy joint merging (Ross, Tarlow & Zemel).
+
+    Parameters
+    ----------
+    n_iter : int
+        EM iterations after initialisation and after every merge (paper: 200).
+    n_iter_merge : int
+        EM iterations used to score each candidate merge (paper: 20).
+    resample_every : int
+        Resample the point-to-stick assignments every this many iterations (paper: 10; 0 = never).
+    resample : {"sample", "map"}
+        Draw assignments from their posterior (paper) or take the most probable stick.
+    selection : {"objective", "bic"}
+        Pick the stage with the highest objective (the paper) or the highest
+        ``objective - k/2 log N`` (k free parameters of the rigid-joint model).
+    n_ends : int
+        Endpoints per stick. The paper's sticks have 2, so a stick can take part in
+        at most two distinct joints; a part with a third joint away from its ends
+        (a pelvis with two hips and a spine, a limb hanging from the middle of
+        another) then gets a loose joint or none. The default 3 allows that; 2 is
+        the paper's model.
+    endpoint_init : {"axis", "centroid"}
+        Start a stick's endpoints along its principal axis (the first two at its
+        ends), or all at its centroid (the paper).
+    merge_init : {"joint", "mean"}
+        Start a merged vertex at the least-squares joint of its sticks, or at the mean
+        of the two vertices (the paper).
+    merge_scope : {"local", "full"}
+        Score a merge by EM on the sticks it touches (batched), or on a copy of the
+        whole model (the paper; slow).
+    max_candidates : int, optional
+        Score only this many candidate merges per stage (those with the smallest
+        least-squares joint residual); all when None (the paper).
+    max_merges : int, optional
+        Stop merging after this many merges; all valid merges when None.
+    tol : float
+        Early stop of an EM run (relative objective change over ``resample_every``
+        iterations with unchanged assignments); 0 runs every iteration.
+    min_stick_points : int
+        A stick without joints that keeps fewer points after resampling is dissolved.
+    max_sticks : int, optional
+        Upper bound of the number of initial clusters (default ``min(20, P // 3)``).
+    labels_init : array_like of int, shape (P,), optional
+        Initial assignments instead of Affinity Propagation.
+    tau_p, alpha0, beta0, max_precision : float
+        Priors (normalised units: the data are centred and scaled to unit RMS
+        spread): precision of the Gaussian prior on local coordinates; Gamma prior
+        of the vertex precisions; upper bound on tau_w, tau_m, tau_t.
+    impute_iter : int
+        EM iterations used to re-fit motions on new frames in :meth:`impute`.
+    random_state : None, int or Generator
+    progress : bool
+        Show a tqdm progress bar over the merge stages (stage k of n, objective).
+    """
+
+    min_points = 4
+    min_frames = 3
+
+    def __init__(self, n_iter: int = 200, n_iter_merge: int = 20, resample_every: int = 10,
+                 resample: str = "sample", selection: str = "objective", n_ends: int = 3,
+                 endpoint_init: str = "axis",
+                 merge_init: str = "joint", merge_scope: str = "local", max_candidates: int | None = None,
+                 max_merges: int | None = None, tol: float = 1e-5, min_stick_points: int = 3,
+                 max_sticks: int | None = None, labels_init: Any = None, tau_p: float = 1e-3,
+                 alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e10, impute_iter: int = 100,
+                 random_state: Any = None, progress: bool = False) -> None:
+        self.n_iter = n_iter
+        self.n_iter_merge = n_iter_merge
+        self.resample_every = resample_every
+        self.resample = resample
+        self.selection = selection
+        self.n_ends = n_ends
+        self.endpoint_init = endpoint_init
+        self.merge_init = merge_init
+        self.merge_scope = merge_scope
+        self.max_candidates = max_candidates
+        self.max_merges = max_merges
+        self.tol = tol
+        self.min_stick_points = min_stick_points
+        self.max_sticks = max_sticks
+        self.labels_init = labels_init
+        self.tau_p = tau_p
+        self.alpha0 = alpha0
+        self.beta0 = beta0
+        self.max_precision = max_precision
+        self.impute_iter = impute_iter
+        self.random_state = random_state
+        self.progress = progress
+
+    # ----------------------------------------------------------------- checks
+    def _settings(self) -> tuple[EMSettings, Priors]:
+        for name in ("n_iter", "n_iter_merge", "min_stick_points", "impute_iter", "n_ends"):
+            check_positive(getattr(self, name), name, integer=True)
+        if self.n_ends < 2:
+            raise ValueError(f"n_ends must be >= 2 (a stick has two ends), got {self.n_ends!r}")
+        check_positive(self.resample_every, "resample_every", integer=True, allow_zero=True)
+        check_positive(self.tol, "tol", allow_zero=True)
+        for name in ("tau_p", "alpha0", "beta0", "max_precision"):
+            check_positive(getattr(self, name), name)
+        choices = {"resample": ("sample", "map"), "selection": ("objective", "bic"),
+                   "endpoint_init": ("axis", "centroid"), "merge_init": ("joint", "mean"),
+                   "merge_scope": ("local", "full")}
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"{name} must be one of {', '.join(map(repr, allowed))}, got {getattr(self, name)!r}")
+        for name in ("max_candidates", "max_merges", "max_sticks"):
+            v = getattr(self, name)
+            if v is not None:
+                check_positive(v, name, integer=True, allow_zero=name == "max_merges")
+        settings = EMSettings(n_iter=int(self.n_iter), n_iter_merge=int(self.n_iter_merge),
+                              resample_every=int(self.resample_every), resample=self.resample,
+                              min_stick_points=int(self.min_stick_points), merge_scope=self.merge_scope,
+                              merge_init=self.merge_init,
+                              max_candidates=None if self.max_candidates is None else int(self.max_candidates),
+                              max_merges=None if self.max_merges is None else int(self.max_merges),
+                              tol=float(self.tol))
+        priors = Priors(tau_p=float(self.tau_p), alpha0=float(self.alpha0), beta0=float(self.beta0),
+                        max_precision=float(self.max_precision))
+        return settings, priors
+
+    # -------------------------------------------------------------------- fit
+    def _fit(self, traj: Trajectories, rng: np.random.Generator) -> Skeleton:
+        if traj.n_dims != 2:
+            raise ValueError(f"em models 2D observations, got {traj.n_dims}D data; project 3D data first "
+                             "(traj.project())")
+        settings, priors = self._settings()
+        stages, selected, norm, info0 = fit_stages(traj, settings, priors, rng, labels_init=self.labels_init,
+                                                   max_sticks=self.max_sticks, selection=self.selection,
+                                                   endpoint_init=self.endpoint_init, n_ends=int(self.n_ends),
+                                                   progress=self.progress)
+        return _skeleton(stages, selected, norm, info0, self.selection, traj)
+
+    # ----------------------------------------------------------------- impute
+    @classmethod
+    def impute_skeleton(cls, skeleton: Skeleton, traj: Trajectories) -> np.ndarray:
+        """Re-fit motions, endpoints and vertices to ``traj`` with L, K, G and R fixed; predict every point.
+
+        The new frames are normalised with the training centre and scale so the
+        learned precisions apply. Motions start from a per-frame Procrustes fit of
+        the fixed local shapes to the visible points (frames where a stick shows
+        fewer than 3 points copy the nearest frame where it shows more), then
+        ``impute_iter`` EM iterations update endpoints, vertices, vertex
+        precisions and motions.
+        """
+        state, obs, norm = _impute_state(skeleton, traj)
+        n_iter = int(skeleton.params.get("impute_iter", 100))
+        priors = Priors(**skeleton.info["priors"])
+        settings = EMSettings(**{**skeleton.info["settings"], "tol": 0.0})
+        from .updates import em_sweep
+
+        for _ in range(n_iter):
+            em_sweep(state, obs, priors, precisions=False, local=False, n_procrustes=settings.n_procrustes)
+        centre, scale = norm
+        return state.point_predictions() * scale + centre
+
+
+# --------------------------------------------------------------------------- helpers
+def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np.random.Generator, *,
+               labels_init: Any = None, max_sticks: int | None = None, selection: str = "objective",
+               endpoint_init: str = "axis", n_ends: int = 2, progress: bool = False
+               ) -> tuple[list[Stage], int, tuple[np.ndarray, float], dict[str, Any]]:
+    """Initialisation and the whole structure search; returns every stage and the selected one."""
+    obs, centre, scale = normalise(traj.xy)
+    P = traj.n_points
+    info0: dict[str, Any] = {}
+    if labels_init is None:
+        from ...segmentation import affinity_propagation_segments
+
+        ms = max_sticks if max_sticks is not None else int(max(2, min(20, P // 3)))
+        labels, ap = affinity_propagation_segments(traj.xy, max_segments=ms, random_state=rng, return_info=True)
+        info0["initial_clustering"] = {k: v for k, v in ap.items() if isinstance(v, (int, float, str, type(None)))}
+    else:
+        labels = check_labels(labels_init, P, "labels_init")
+        if (labels < 0).any():
+            raise ValueError("labels_init must assign every point to a stick (no -1)")
+    _, labels = np.unique(labels, return_inverse=True)
+    S = int(labels.max()) + 1
+    info0["n_initial_sticks"] = S
+    st = initial_state(obs, labels, S, priors, rng, endpoint_init=endpoint_init, n_ends=n_ends)
+    bar = None
+    cb = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=max(S - 1, 1), desc="em merges", unit="stage")
+
+        def cb(k: int, n: int, value: float) -> None:
+            bar.total = max(n, 1)
+            bar.n = k
+            bar.set_postfix_str(f"stage {k} of {n}, objective {value:.6g}")
+            bar.refresh()
+
+    try:
+        stages, selected = learn_structure(st, obs, priors, settings, rng, selection=selection, progress=cb)
+    finally:
+        if bar is not None:
+            bar.close()
+    info0["settings"] = asdict(settings)
+    info0["priors"] = asdict(priors)
+    return stages, selected, (centre, scale), info0
+
+
+def _skeleton(stages: list[Stage], selected: int, norm: tuple[np.ndarray, float], info0: dict[str, Any],
+              selection: str, traj: Trajectories) -> Skeleton:
+    centre, scale = norm
+    st = stages[selected].state
+    assert st is not None
+    S, F, D = st.trans.shape
+    edges, verts = stick_edges(st)
+    counts = st.vertex_counts()
+    joint_v = np.flatnonzero(counts >= 2)
+    row = {int(v): r for r, v in enumerate(joint_v)}
+    joints = st.mu_v[joint_v] * scale + centre
+    motions = np.concatenate([st.rot, (st.trans * scale + centre)[..., None]], axis=-1)
+    ref = int(np.argmax((~np.isnan(traj.xy[..., 0])).sum(axis=0)))
+    info = dict(info0)
+    info.update({
+        "selection": selection,
+        "selected_stage": int(selected),
+        "reference_frame": ref,
+        "stages": [{
+            "objective": s.objective, "bic": s.bic, "n_sticks": int(s.labels.max()) + 1,
+            "labels": s.labels.tolist(), "vertex_of": s.vertex_of.tolist(), "edges": [list(e) for e in s.edges],
+            "merged": None if s.merged is None else list(s.merged), "n_sweeps": s.n_sweeps,
+            "ends_xy": (s.ends_xy * scale + centre).tolist(), "joints_xy": (s.joints_xy * scale + centre).tolist(),
+        } for s in stages],
+        "objective_stage": int(np.argmax([s.objective for s in stages])),
+        "bic_stage": int(np.argmax([s.bic for s in stages])),
+        "precisions": {"tau_w": st.tau_w, "tau_m": st.tau_m, "tau_t": st.tau_t},
+        "units": "objective in normalised units (data centred, scaled to unit RMS spread)",
+    })
+    state = {
+        "ends": st.ends * scale,
+        "vertex_of": st.vertex_of,
+        "alpha": st.alpha,
+        "beta": st.beta,
+        "centre": centre,
+        "scale": np.array(scale),
+        "precisions": np.array([st.tau_w, st.tau_m, st.tau_t]),
+    }
+    return Skeleton(method="em", labels=st.labels, n_sticks=S, edges=edges, joints=joints,
+                    edge_joints=np.array([row[v] for v in verts], dtype=np.int64), motions=motions,
+                    local=st.local * scale, log_likelihood=stages[selected].objective, n_dims=D, state=state,
+                    info=info)
+
+
+def _impute_state(skeleton: Skeleton, traj: Trajectories) -> tuple[StickState, Observations, tuple]:
+    """A state for new frames: fixed L, K, G, R; motions by Procrustes; vertices from endpoints."""
+    from ...geometry import orthogonal_procrustes_rows
+
+    for key in ("ends", "vertex_of", "alpha", "beta", "centre", "scale", "precisions"):
+        if key not in skeleton.state:
+            raise ValueError(f"the em skeleton lacks state[{key!r}]; it cannot impute (re-fit it)")
+    centre = np.asarray(skeleton.state["centre"], float)
+    scale = float(skeleton.state["scale"])
+    xy = traj.xy
+    mask = ~np.isnan(xy[..., 0])
+    obs = Observations(np.where(mask[..., None], (xy - centre) / scale, 0.0), mask.astype(float))
+    labels = skeleton.labels
+    if (labels < 0).any():
+        raise ValueError("the em skeleton has unassigned points; it cannot impute")
+    S = skeleton.n_sticks
+    P, F, D = xy.shape
+    local = skeleton.local / scale
+    ends = np.asarray(skeleton.state["ends"], float) / scale
+    rot = np.zeros((S, F, D, 3))
+    trans = np.zeros((S, F, D))
+    for s in range(S):  # one batched Procrustes per stick over all frames
+        idx = np.flatnonzero(labels == s)
+        m = mask[idx].T.astype(float)  # (F, n)
+        cnt = m.sum(axis=1)
+        good = cnt >= 3
+        if not good.any():
+            good = cnt >= max(cnt.max(), 1)
+        w = np.nan_to_num(obs.w[idx]).transpose(1, 2, 0)  # (F, D, n)
+        cw = np.maximum(cnt, 1)
+        abar = np.einsum("fdn,fn->fd", w, m) / cw[:, None]
+        lbar = (m @ local[idx]) / cw[:, None]  # (F, 3)
+        A = (w - abar[..., None]) * m[:, None, :]
+        B = (local[idx].T[None] - lbar[..., None]) * m[:, None, :]
+        R = orthogonal_procrustes_rows(A, B)
+        gi = np.flatnonzero(good)
+        near = gi[np.clip(np.searchsorted(gi, np.arange(F)), 0, gi.size - 1)]
+        prev = gi[np.clip(np.searchsorted(gi, np.arange(F)) - 1, 0, gi.size - 1)]
+        near = np.where(np.abs(prev - np.arange(F)) < np.abs(near - np.arange(F)), prev, near)
+        R = R[near]
+        t = abar - np.einsum("fdk,fk->fd", R, lbar)
+        rot[s], trans[s] = R, t[near]
+    tau_w, tau_m, tau_t = (float(v) for v in skeleton.state["precisions"])
+    vertex_of = np.asarray(skeleton.state["vertex_of"], np.int64)
+    J = int(vertex_of.max()) + 1
+    alpha0, beta0 = np.asarray(skeleton.state["alpha"], float), np.asarray(skeleton.state["beta"], float)
+    a = alpha0 / beta0
+    st = StickState(labels=labels.copy(), vertex_of=vertex_of, rot=rot, trans=trans, local=local, ends=ends,
+                    mu_e=np.zeros((ends.shape[0], F, D)), tau_e=tau_m + a[vertex_of], mu_v=np.zeros((J, F, D)),
+                    tau_v=np.ones((J, F)), alpha=alpha0.copy(), beta=beta0.copy(), tau_w=tau_w, tau_m=tau_m,
+                    tau_t=tau_t)
+    pred = st.end_predictions()
+    n = np.bincount(vertex_of, minlength=J).astype(float)
+    sums = np.zeros((J, F, D))
+    np.add.at(sums, vertex_of, pred)
+    st.mu_v = sums / n[:, None, None]
+    st.tau_v = (a * n)[:, None] + tau_t * chain_degree(F)[None, :]
+    # Scale phi's posterior to the new number of frames, keeping its mean.
+    st.alpha = float(skeleton.info.get("priors", {}).get("alpha0", 1.0)) + 0.5 * D * F * n
+    st.beta = st.alpha / a
+    update_endpoints(st)
+    return st, obs, (centre, scale)

@@ -1,0 +1,437 @@
+"""State of the Ross-Tarlow-Zemel stick model and its objective (the negative free energy).
+
+Notation (all positions in *normalised* units, see :func:`normalise`):
+
+=============  =====================  ================================================
+symbol         array                  meaning
+=============  =====================  ================================================
+w_pf           ``obs.w`` (P, F, D)    observed point p in frame f (0 where missing)
+o_pf           ``obs.mask`` (P, F)    1 where observed
+r_p            ``labels`` (P,)        stick of point p (the hard assignment R)
+l_p            ``local`` (P, 3)       local coordinates of point p on its stick (L)
+k_i            ``ends`` (ES, 3)       local coordinates of endpoint i (K); stick s owns
+                                      endpoints Es .. Es+E-1 (E = 2 in the paper)
+R_sf, t_sf     ``rot`` (S, F, D, 3),  motion M_sf = [R_sf t_sf], R with orthonormal rows
+               ``trans`` (S, F, D)
+g_i            ``vertex_of`` (ES,)    vertex of endpoint i (the assignment G)
+mu(e), tau(e)  ``mu_e`` (ES, F, D),   Gaussian posterior of the endpoint positions
+               ``tau_e`` (ES,)        (isotropic precision; it does not depend on f)
+mu(v), tau(v)  ``mu_v`` (J, F, D),    Gaussian posterior of the vertex positions
+               ``tau_v`` (J, F)
+alpha, beta    (J,)                   Gamma posterior of the vertex precisions phi_j
+tau_w          float                  observation precision
+tau_m          float                  endpoint-to-stick precision
+tau_t          float                  temporal smoothness precision of the vertices
+=============  =====================  ================================================
+
+A block of the model can be optimised on its own (merge scoring, see
+``structure.py``): its vertices may then carry *ghost* endpoints, endpoints of
+sticks outside the block whose posterior is held fixed. They enter the vertex
+and precision updates through four sufficient statistics (``Ghosts``).
+
+The objective (eq. 4 of the paper) is written out term by term in
+:func:`objective_terms`; docs/em.md has the derivation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy import sparse
+from scipy.special import digamma, gammaln
+
+__all__ = ["Observations", "Priors", "Ghosts", "StickState", "Design", "normalise", "objective_terms",
+           "objective", "structure_log_prior"]
+
+LOG2PI = float(np.log(2.0 * np.pi))
+
+
+@dataclass
+class Observations:
+    """Observed trajectories in normalised units.
+
+    Attributes
+    ----------
+    w : ndarray, shape (P, F, D)
+        Positions, 0 where missing.
+    mask : ndarray, shape (P, F)
+        1.0 where observed, 0.0 where missing.
+    """
+
+    w: np.ndarray
+    mask: np.ndarray
+
+    @property
+    def n_points(self) -> int:
+        return int(self.w.shape[0])
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.w.shape[1])
+
+    @property
+    def n_dims(self) -> int:
+        return int(self.w.shape[2])
+
+    def take(self, points: np.ndarray) -> "Observations":
+        return Observations(self.w[points], self.mask[points])
+
+
+def normalise(xy: np.ndarray) -> tuple[Observations, np.ndarray, float]:
+    """Centre and scale trajectories so that priors are unit-free.
+
+    Parameters
+    ----------
+    xy : ndarray, shape (P, F, D), NaN where missing
+
+    Returns
+    -------
+    obs : Observations
+        ``(xy - centre) / scale`` with missing entries set to 0.
+    centre : ndarray, shape (D,)
+        Mean of the observed positions.
+    scale : float
+        Root-mean-square distance of the observed positions from ``centre``.
+    """
+    mask = ~np.isnan(xy[..., 0])
+    vals = xy[mask]
+    centre = vals.mean(axis=0)
+    scale = float(np.sqrt(np.mean(np.sum((vals - centre) ** 2, axis=1))))
+    if not np.isfinite(scale) or scale <= 0:
+        scale = 1.0
+    w = np.where(mask[..., None], (xy - centre) / scale, 0.0)
+    return Observations(w=w, mask=mask.astype(float)), centre, scale
+
+
+@dataclass(frozen=True)
+class Priors:
+    """Fixed hyper-parameters (normalised units).
+
+    Attributes
+    ----------
+    tau_p : float
+        Precision of the zero-mean Gaussian prior on local coordinates L and K.
+    alpha0, beta0 : float
+        Shape and rate of the Gamma prior on every vertex precision phi_j.
+    max_precision : float
+        Upper bound on tau_w and tau_t (the paper's "thresholds on Gaussian
+        variances"): keeps the EM away from the degenerate zero-variance
+        solutions of noiseless data.
+    max_tau_m_ratio : float
+        Upper bound on ``tau_m / tau_w``. The two Gaussians on an endpoint (about
+        its stick, precision tau_m, and about its vertex, phi_j) act in series, so
+        the objective keeps creeping up as tau_m grows without bound (towards
+        endpoints rigidly fixed on their sticks); the bound stops that drift so
+        that EM runs converge (endpoint play
+        with the default: at least 0.3 times the observation noise).
+    """
+
+    tau_p: float = 1e-3
+    alpha0: float = 1.0
+    beta0: float = 1e-3
+    max_precision: float = 1e10
+    max_tau_m_ratio: float = 10.0
+
+
+@dataclass
+class Ghosts:
+    """Fixed endpoints (of sticks outside a block) attached to the block's vertices.
+
+    Attributes
+    ----------
+    n : ndarray, shape (J,)
+        Number of ghost endpoints on each vertex.
+    sum : ndarray, shape (J, F, D)
+        Sum of their posterior means.
+    sq : ndarray, shape (J, F)
+        Sum of the squared norms of their means.
+    var : ndarray, shape (J, F)
+        Sum of ``D / tau(e)`` (the trace of their posterior covariance).
+    """
+
+    n: np.ndarray
+    sum: np.ndarray
+    sq: np.ndarray
+    var: np.ndarray
+
+    @staticmethod
+    def empty(J: int, F: int, D: int) -> "Ghosts":
+        return Ghosts(np.zeros(J), np.zeros((J, F, D)), np.zeros((J, F)), np.zeros((J, F)))
+
+
+@dataclass
+class Design:
+    """Sparse incidence matrices that turn per-point sums into matrix products.
+
+    Built once per assignment R (and data); every EM sweep then touches the
+    points only through a few sparse products with ``nnz ~ P F D``.
+
+    Attributes
+    ----------
+    onehot : sparse (S, P)
+        Point-to-stick incidence.
+    vis : sparse (S F, P)
+        Row ``s F + f`` holds ``o_pf`` for the points of stick s.
+    obs_w : sparse (S F D, P)
+        Row ``(s F + f) D + d`` holds ``o_pf w_pfd`` for the points of stick s.
+    n : ndarray (S, F)
+        Visible points of each stick in each frame.
+    s_w : ndarray (S, F, D)
+        Sum of their positions.
+    s_ww : ndarray (S,)
+        Sum of their squared norms over all frames.
+    """
+
+    labels: np.ndarray
+    n_sticks: int
+    obs: Observations = field(repr=False)
+    onehot: sparse.csr_matrix = field(repr=False)
+    vis: sparse.csr_matrix = field(repr=False)
+    vis_T: sparse.csr_matrix = field(repr=False)
+    obs_w: sparse.csr_matrix = field(repr=False)
+    obs_w_T: sparse.csr_matrix = field(repr=False)
+    n: np.ndarray = field(repr=False)
+    s_w: np.ndarray = field(repr=False)
+    s_ww: np.ndarray = field(repr=False)
+
+    @staticmethod
+    def of(labels: np.ndarray, n_sticks: int, obs: Observations) -> "Design":
+        P, F, D = obs.w.shape
+        S = n_sticks
+        onehot = sparse.csr_matrix((np.ones(P), (labels, np.arange(P))), shape=(S, P))
+        pp, ff = np.nonzero(obs.mask)
+        rows = labels[pp] * F + ff
+        vis = sparse.csr_matrix((np.ones(pp.size), (rows, pp)), shape=(S * F, P))
+        rows_w = (rows[:, None] * D + np.arange(D)[None, :]).ravel()
+        obs_w = sparse.csr_matrix((obs.w[pp, ff].ravel(), (rows_w, np.repeat(pp, D))), shape=(S * F * D, P))
+        n = np.asarray(vis.sum(axis=1)).reshape(S, F)
+        s_w = np.asarray(obs_w.sum(axis=1)).reshape(S, F, D)
+        ww = np.sum(obs.w * obs.w, axis=(1, 2))
+        s_ww = np.bincount(labels, weights=ww, minlength=S)
+        return Design(labels=labels, n_sticks=S, obs=obs, onehot=onehot, vis=vis, vis_T=vis.T.tocsr(),
+                      obs_w=obs_w, obs_w_T=obs_w.T.tocsr(), n=n, s_w=s_w, s_ww=s_ww)
+
+    def stick_sum(self, x: np.ndarray) -> np.ndarray:
+        """Sum ``x`` (P, ...) over the points of each stick -> (S, ...)."""
+        P = x.shape[0]
+        out = self.onehot @ x.reshape(P, -1)
+        return np.asarray(out).reshape((self.n_sticks,) + x.shape[1:])
+
+    def point_stats(self, local: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per (stick, frame) sums over the visible points of ``l``, ``l l^T`` and ``w l^T``.
+
+        Returns
+        -------
+        s_l : (S, F, 3), s_ll : (S, F, 3, 3), s_wl : (S, F, D, 3)
+        """
+        S, F, D = self.s_w.shape
+        P = local.shape[0]
+        LL = (local[:, :, None] * local[:, None, :]).reshape(P, 9)
+        s_l = (self.vis @ local).reshape(S, F, 3)
+        s_ll = (self.vis @ LL).reshape(S, F, 3, 3)
+        s_wl = (self.obs_w @ local).reshape(S, F, D, 3)
+        return s_l, s_ll, s_wl
+
+    def residual_sq(self, rot: np.ndarray, trans: np.ndarray, local: np.ndarray) -> np.ndarray:
+        """``sum_{p in s, f} o_pf |w_pf - R_sf l_p - t_sf|^2`` for every stick, shape (S,)."""
+        s_l, s_ll, s_wl = self.point_stats(local)
+        cross = np.sum(rot * s_wl, axis=(1, 2, 3)) + np.sum(trans * self.s_w, axis=(1, 2))  # (S,)
+        RtR = np.swapaxes(rot, -1, -2) @ rot
+        Rl = (rot @ s_l[..., None])[..., 0]  # (S, F, D)
+        quad = np.sum(RtR * s_ll, axis=(1, 2, 3)) + 2.0 * np.sum(trans * Rl, axis=(1, 2)) \
+            + np.sum(self.n * np.sum(trans * trans, axis=2), axis=1)
+        out = self.s_ww - 2.0 * cross + quad
+        return np.maximum(out, 0.0)
+
+
+@dataclass
+class StickState:
+    """Every variable of the model (see the module docstring for the notation)."""
+
+    labels: np.ndarray
+    vertex_of: np.ndarray
+    rot: np.ndarray
+    trans: np.ndarray
+    local: np.ndarray
+    ends: np.ndarray
+    mu_e: np.ndarray
+    tau_e: np.ndarray
+    mu_v: np.ndarray
+    tau_v: np.ndarray
+    alpha: np.ndarray
+    beta: np.ndarray
+    tau_w: float
+    tau_m: float
+    tau_t: float
+    ghosts: Ghosts | None = None
+    _design: Design | None = field(default=None, repr=False)
+    _quat: np.ndarray | None = field(default=None, repr=False)  # quaternions of ``rot`` (cache)
+    _quat_of: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def n_sticks(self) -> int:
+        return int(self.rot.shape[0])
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.mu_v.shape[0])
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.rot.shape[1])
+
+    @property
+    def n_dims(self) -> int:
+        return int(self.rot.shape[2])
+
+    @property
+    def ends_per_stick(self) -> int:
+        """E, the number of endpoints of every stick (2 in the paper)."""
+        return int(self.ends.shape[0] // max(self.n_sticks, 1))
+
+    @property
+    def stick_of_end(self) -> np.ndarray:
+        return np.repeat(np.arange(self.n_sticks), self.ends_per_stick)
+
+    def design(self, obs: Observations) -> Design:
+        """The sparse design of the current assignment (cached until labels or data change)."""
+        d = self._design
+        if d is None or d.n_sticks != self.n_sticks or d.labels is not self.labels or d.obs is not obs:
+            self._design = Design.of(self.labels, self.n_sticks, obs)
+        return self._design
+
+    def vertex_counts(self) -> np.ndarray:
+        """Number of (own) endpoints on each vertex, shape (J,)."""
+        return np.bincount(self.vertex_of, minlength=self.n_vertices).astype(float)
+
+    def copy(self) -> "StickState":
+        arrays = {k: getattr(self, k).copy() for k in ("labels", "vertex_of", "rot", "trans", "local", "ends",
+                                                        "mu_e", "tau_e", "mu_v", "tau_v", "alpha", "beta")}
+        g = self.ghosts
+        ghosts = None if g is None else Ghosts(g.n.copy(), g.sum.copy(), g.sq.copy(), g.var.copy())
+        return replace(self, **arrays, ghosts=ghosts, _design=None, _quat=None, _quat_of=None)
+
+    def point_predictions(self) -> np.ndarray:
+        """``R_{r_p f} l_p + t_{r_p f}``, shape (P, F, D)."""
+        return np.einsum("pfdk,pk->pfd", self.rot[self.labels], self.local) + self.trans[self.labels]
+
+    def end_predictions(self) -> np.ndarray:
+        """``R_{s(i) f} k_i + t_{s(i) f}``, shape (ES, F, D)."""
+        s = self.stick_of_end
+        return (self.rot[s] @ self.ends[:, None, :, None])[..., 0] + self.trans[s]
+
+
+def chain_degree(F: int) -> np.ndarray:
+    """Number of temporal neighbours of each frame (the paper's 2^h(f)), shape (F,)."""
+    c = np.full(F, 2.0)
+    c[0] = c[-1] = 1.0
+    return c
+
+
+def objective_terms(state: StickState, obs: Observations, priors: Priors) -> tuple[np.ndarray, np.ndarray]:
+    """The objective split into per-stick and per-vertex parts.
+
+    ``objective = per_stick.sum() + per_vertex.sum() + structure_log_prior``.
+    Every term that involves a stick's points, motions, local coordinates or
+    endpoint posteriors is in ``per_stick``; every term that involves a vertex's
+    posterior, its precision phi_j or the coupling of endpoints (own or ghost)
+    to it is in ``per_vertex``. A block's objective is therefore the sum of its
+    sticks' and vertices' parts, which is what merge scoring compares.
+
+    Terms (E = expectation under Q; D the dimension; a_j = alpha_j / beta_j)::
+
+      points     sum_{p,f} o_pf [D/2 log(tau_w / 2pi) - tau_w/2 |w_pf - R l_p - t|^2]
+      L, K prior sum 3/2 log(tau_p / 2pi) - tau_p/2 |l|^2     (each point and endpoint)
+      e | stick  sum_{i,f} D/2 log(tau_m / 2pi) - tau_m/2 (|mu(e) - R k_i - t|^2 + D / tau(e))
+      H[e]       sum_{i,f} D/2 (1 + log 2pi - log tau(e))
+      e | v      sum_{i,f} D/2 (E log phi - log 2pi) - a/2 (|mu(e) - mu(v)|^2 + D/tau(e) + D/tau(v))
+      v chain    sum_{j, f>1} D/2 log(tau_t / 2pi) - tau_t/2 (|mu(v_f) - mu(v_f-1)|^2 + D/tau(v_f) + D/tau(v_f-1))
+      H[v]       sum_{j,f} D/2 (1 + log 2pi - log tau(v))
+      phi        E log Gamma(phi | alpha0, beta0) + H[Gamma(alpha, beta)]
+
+    with ``E log phi = digamma(alpha) - log beta``.
+
+    Returns
+    -------
+    per_stick : ndarray, shape (S,)
+    per_vertex : ndarray, shape (J,)
+    """
+    D = state.n_dims
+    F = state.n_frames
+    S, J = state.n_sticks, state.n_vertices
+    des = state.design(obs)
+    tw, tm, tt, tp = state.tau_w, state.tau_m, state.tau_t, priors.tau_p
+
+    # --- per stick: points
+    sq = des.residual_sq(state.rot, state.trans, state.local)  # (S,)
+    nobs = des.n.sum(axis=1)  # (S,)
+    per_stick = nobs * (0.5 * D * (np.log(tw) - LOG2PI)) - 0.5 * tw * sq
+    lprior = 1.5 * (np.log(tp) - LOG2PI) - 0.5 * tp * np.sum(state.local ** 2, axis=1)
+    per_stick = per_stick + des.stick_sum(lprior)
+
+    # --- per stick: endpoints given the stick, their prior and entropy
+    eres = state.mu_e - state.end_predictions()
+    esq = np.sum(eres * eres, axis=(1, 2))  # (2S,)
+    inv_te = 1.0 / state.tau_e
+    end_term = F * 0.5 * D * (np.log(tm) - LOG2PI) - 0.5 * tm * (esq + F * D * inv_te)
+    end_term += F * 0.5 * D * (1.0 + LOG2PI - np.log(state.tau_e))
+    end_term += 1.5 * (np.log(tp) - LOG2PI) - 0.5 * tp * np.sum(state.ends ** 2, axis=1)
+    per_stick = per_stick + end_term.reshape(S, -1).sum(axis=1)
+
+    # --- per vertex: endpoint-vertex coupling
+    a = state.alpha / state.beta
+    elog_phi = digamma(state.alpha) - np.log(state.beta)
+    g = state.vertex_of
+    inv_tv = 1.0 / state.tau_v  # (J, F)
+    dv = state.mu_e - state.mu_v[g]
+    dsq = np.sum(dv * dv, axis=(1, 2))  # (2S,)
+    # per endpoint: sum_f [|.|^2 + D/tau(e) + D/tau(v)]
+    coup = dsq + F * D * inv_te + D * inv_tv[g].sum(axis=1)
+    n_own = np.bincount(g, minlength=J).astype(float)
+    coup_v = np.bincount(g, weights=coup, minlength=J)
+    n_all = n_own.copy()
+    if state.ghosts is not None:
+        gh = state.ghosts
+        gsq = gh.sq - 2.0 * np.sum(gh.sum * state.mu_v, axis=2) + gh.n[:, None] * np.sum(state.mu_v ** 2, axis=2)
+        coup_v = coup_v + np.sum(gsq + gh.var + gh.n[:, None] * D * inv_tv, axis=1)
+        n_all = n_all + gh.n
+    per_vertex = n_all * F * 0.5 * D * (elog_phi - LOG2PI) - 0.5 * a * coup_v
+
+    # --- per vertex: temporal chain and entropy
+    if F > 1:
+        dmu = np.diff(state.mu_v, axis=1)
+        chain = np.sum(dmu * dmu, axis=(1, 2)) + D * np.sum(inv_tv[:, 1:] + inv_tv[:, :-1], axis=1)
+        per_vertex = per_vertex + (F - 1) * 0.5 * D * (np.log(tt) - LOG2PI) - 0.5 * tt * chain
+    per_vertex = per_vertex + 0.5 * D * np.sum(1.0 + LOG2PI - np.log(state.tau_v), axis=1)
+
+    # --- per vertex: phi prior and entropy
+    a0, b0 = priors.alpha0, priors.beta0
+    al, be = state.alpha, state.beta
+    e_prior = a0 * np.log(b0) - gammaln(a0) + (a0 - 1.0) * elog_phi - b0 * a
+    h_gamma = al - np.log(be) + gammaln(al) + (1.0 - al) * digamma(al)
+    per_vertex = per_vertex + e_prior + h_gamma
+    return per_stick, per_vertex
+
+
+def structure_log_prior(labels: np.ndarray, n_sticks: int, vertex_of: np.ndarray, n_vertices: int) -> float:
+    """log P(R) + log P(G) with the multinomial weights at their ML values.
+
+    ``c_s = n_s / P`` (points per stick) and ``d_j = n_j / ES`` (endpoints per
+    vertex), so ``log P(R) = sum_s n_s log(n_s / P)`` and likewise for G.
+    """
+    ns = np.bincount(labels, minlength=n_sticks).astype(float)
+    nj = np.bincount(vertex_of, minlength=n_vertices).astype(float)
+    out = 0.0
+    for n in (ns, nj):
+        tot = n.sum()
+        nz = n[n > 0]
+        out += float(np.sum(nz * np.log(nz / tot)))
+    return out
+
+
+def objective(state: StickState, obs: Observations, priors: Priors) -> float:
+    """The negative free energy (eq. 4) of the whole model, structure prior included."""
+    ps, pv = objective_terms(state, obs, priors)
+    return float(ps.sum() + pv.sum()) + structure_log_prior(state.labels, state.n_sticks, state.vertex_of,
+                                                            state.n_vertices)

@@ -1,0 +1,712 @@
+"""Structure learning (section 4.2, Fig. 3): EM with resampling, then greedy vertex merging.
+
+1. ``run_em``: EM sweeps, resampling R every ``resample_every`` iterations.
+2. Repeatedly: list every *valid* vertex-pair merge (the two vertices lie in
+   different trees of the stick/vertex forest, so a stick never gets both
+   endpoints on one vertex and no cycle appears), score each by the change of
+   the objective after ``n_iter_merge`` EM iterations on a warm-started copy,
+   perform the best and re-optimise with ``n_iter`` iterations (resampling R).
+   Every stage's model and objective are kept.
+
+Deviations from the printed algorithm, each a parameter (docs/em.md):
+
+* ``merge_scope="local"`` (default): a candidate's 20 iterations update only
+  the sticks that own an endpoint on one of the two vertices, their endpoints
+  and all their vertices, with the global precisions and the rest of the model
+  held fixed (endpoints of other sticks on those vertices enter as fixed
+  *ghosts*). The score is then the exact change of the full objective under
+  that block update. All candidates are optimised together as one disjoint
+  union of blocks (batched). ``"full"`` runs the 20 iterations on a copy of the
+  whole model, one candidate at a time (the paper; slow).
+* ``merge_init="joint"`` (default): the merged vertex starts at the least-squares
+  joint of the sticks involved: the local points ``k_i`` minimising
+  ``sum_f sum_i |R_s(i),f k_i + t_s(i),f - v_f|^2`` (v_f eliminated; a small ridge
+  towards the current k). The paper's ``"mean"`` starts the merged vertex at the
+  average of the two and leaves K unchanged, so the 20 iterations must move the
+  endpoints themselves. With ``"joint"``, the two endpoints of a stick that is
+  not yet joined to anything are interchangeable and only one merge per stick
+  pair is scored (the endpoint nearer the solution is used).
+* ``max_candidates``: score only the candidates with the smallest least-squares
+  joint residual (a cheap bound); ``None`` scores all of them.
+* ``merge_baseline`` (default True): a candidate's score is compared with the
+  model run for the same ``n_iter_merge`` iterations without the merge (once per
+  stage), instead of with the model before those iterations. EM on sticks with
+  few points keeps creeping up for hundreds of iterations (an alternating
+  least-squares valley between rotations and local shape), and without the
+  baseline that creep is credited to whichever merge touches those sticks.
+* ``reuse_scores`` (default True): a candidate's score is kept from the stage
+  where it was computed while none of its sticks was involved in a later merge
+  or changed points; the best candidate is always re-scored before it is taken
+  (lazy greedy), so a stale score can only delay a merge, never force one.
+  Each stage then scores O(J) new candidates instead of O(J^2).
+* ``tol``: stop an EM run early once the objective changed by less than
+  ``tol * |objective|`` over ``resample_every`` iterations and the last resampling
+  changed nothing. ``tol=0`` runs the fixed number of iterations.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from .assign import resample_assignments
+from .model import Ghosts, Observations, Priors, StickState, chain_degree, objective, objective_terms, \
+    structure_log_prior
+from .updates import em_sweep, update_endpoints
+
+__all__ = ["EMSettings", "run_em", "components", "merge_candidates", "Candidate", "score_candidates",
+           "apply_merge", "learn_structure", "Stage", "stick_edges", "n_parameters"]
+
+
+@dataclass(frozen=True)
+class EMSettings:
+    """Parameters of the learning algorithm (see :class:`stickfigure.models.em.EMSkeleton`)."""
+
+    n_iter: int = 200
+    n_iter_merge: int = 20
+    resample_every: int = 10
+    resample: str = "sample"
+    min_stick_points: int = 3
+    merge_scope: str = "local"
+    merge_init: str = "joint"
+    max_candidates: int | None = None
+    max_merges: int | None = None
+    tol: float = 1e-5
+    batch_size: int = 2_000_000
+    n_procrustes: int = 1
+    merge_baseline: bool = True
+    n_polish: int = 3
+    reuse_scores: bool = True
+
+
+# ----------------------------------------------------------------------------- EM runs
+def run_em(st: StickState, obs: Observations, priors: Priors, settings: EMSettings, n_iter: int,
+           rng: np.random.Generator, *, resample: bool = True, precisions: bool = True,
+           local: bool = True) -> tuple[StickState, float, int]:
+    """Up to ``n_iter`` EM sweeps, resampling R every ``settings.resample_every`` (not after the last).
+
+    Returns the state, its objective and the number of sweeps done.
+    """
+    every = settings.resample_every if resample and settings.resample_every else 0
+    check = every or 10
+    prev = None
+    changed = False
+    it = 0
+    for it in range(1, n_iter + 1):
+        em_sweep(st, obs, priors, precisions=precisions, local=local, n_procrustes=settings.n_procrustes,
+                 global_rotations=it == 1)
+        if it % check == 0 and it < n_iter:
+            if settings.tol > 0:
+                cur = objective(st, obs, priors)
+                if prev is not None and not changed and abs(cur - prev) <= settings.tol * abs(cur):
+                    break
+                prev = cur
+            if every:
+                st, changed = resample_assignments(st, obs, priors, rng, mode=settings.resample,
+                                                   min_points=settings.min_stick_points)
+    return st, objective(st, obs, priors), it
+
+
+# ----------------------------------------------------------------------- graph helpers
+def components(st: StickState) -> tuple[np.ndarray, np.ndarray]:
+    """Connected components of the stick/vertex forest.
+
+    Returns
+    -------
+    comp_of_stick : (S,) int, comp_of_vertex : (J,) int
+    """
+    S, J = st.n_sticks, st.n_vertices
+    parent = np.arange(S)
+
+    def find(a: int) -> int:
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    first = -np.ones(J, np.int64)
+    E = st.ends_per_stick
+    for i, j in enumerate(st.vertex_of):
+        s = i // E
+        if first[j] < 0:
+            first[j] = s
+        else:
+            ra, rb = find(s), find(int(first[j]))
+            if ra != rb:
+                parent[ra] = rb
+    comp = np.array([find(s) for s in range(S)])
+    _, comp = np.unique(comp, return_inverse=True)
+    cv = comp[np.array([np.flatnonzero(st.vertex_of == j)[0] // E for j in range(J)])]
+    return comp, cv
+
+
+def stick_edges(st: StickState, obs: Observations | None = None) -> tuple[list[tuple[int, int]], list[int]]:
+    """Stick pairs joined by a shared vertex, and the vertex of each.
+
+    A vertex shared by two sticks gives one edge. A vertex shared by k >= 3
+    sticks gives k - 1 edges: the minimum spanning tree of its sticks under the
+    pairwise least-squares joint residual (how well the two sticks alone can
+    share a point over all frames), so the tree links the sticks that really
+    articulate about that point.
+    """
+    import networkx as nx
+
+    edges: list[tuple[int, int]] = []
+    verts: list[int] = []
+    E = st.ends_per_stick
+    for j in range(st.n_vertices):
+        own = np.flatnonzero(st.vertex_of == j)
+        k_of = {int(i // E): st.ends[i] for i in own}
+        sticks = sorted(k_of)
+        if len(sticks) < 2:
+            continue
+        if len(sticks) == 2:
+            edges.append((sticks[0], sticks[1]))
+            verts.append(j)
+            continue
+        g = nx.Graph()
+        for ia, a in enumerate(sticks):
+            for b in sticks[ia + 1:]:
+                _, res = joint_least_squares(st, [a, b], [k_of[a], k_of[b]])
+                g.add_edge(a, b, weight=res)
+        for a, b in sorted(nx.minimum_spanning_tree(g).edges()):
+            edges.append((min(a, b), max(a, b)))
+            verts.append(j)
+    return edges, verts
+
+
+def pair_stats(st: StickState, sticks: Any = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Frame sums ``sum_f R_a^T R_b`` (n, n, 3, 3), ``sum_f R_a^T t_b`` (n, n, 3), ``sum_f t_a . t_b`` (n, n)."""
+    R = st.rot if sticks is None else st.rot[sticks]
+    t = st.trans if sticks is None else st.trans[sticks]
+    n, F, D, _ = R.shape
+    Rf = R.reshape(n, F * D, 3)
+    tf = t.reshape(n, F * D)
+    RfT = np.swapaxes(Rf, 1, 2)  # (n, 3, FD)
+    RR = RfT[:, None] @ Rf[None]  # (n, n, 3, 3)
+    Rt = RfT @ tf.T  # (n, 3, n): [a, :, b] = sum R_a^T t_b
+    return RR, np.transpose(Rt, (0, 2, 1)), tf @ tf.T
+
+
+def joint_least_squares(st: StickState, sticks: list[int], k0: list[np.ndarray], *, ridge: float = 1e-3,
+                        stats: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+                        ) -> tuple[np.ndarray, float]:
+    """Local points ``k_a`` on each stick that best coincide over all frames.
+
+    Minimises ``sum_f sum_a |R_af k_a + t_af - v_f|^2`` with ``v_f`` the mean of the
+    predictions (eliminated), plus ``ridge * F * sum_a |k_a - k0_a|^2`` to fix the
+    directions the motion leaves undetermined (a hinge's axis).
+
+    Returns
+    -------
+    k : ndarray, shape (n, 3)
+    residual : float
+        Mean squared distance of the predictions from their mean, per stick and frame.
+
+    ``stats``: :func:`pair_stats` of all sticks (reused across candidates).
+    """
+    n = len(sticks)
+    F = st.n_frames
+    if stats is None:
+        RR, Rt, tt = pair_stats(st, sticks)
+    else:
+        ix = np.asarray(sticks)
+        RR, Rt, tt = (a[np.ix_(ix, ix)] for a in stats)
+    M = np.eye(n) - 1.0 / n
+    H = (M[:, :, None, None] * RR).transpose(0, 2, 1, 3).reshape(3 * n, 3 * n)
+    g = np.sum(M[:, :, None] * Rt, axis=1).reshape(3 * n)
+    lam = ridge * F
+    k0v = np.asarray(k0, dtype=float).reshape(3 * n)
+    k = np.linalg.solve(H + lam * np.eye(3 * n), -g + lam * k0v)
+    res = float(k @ H @ k + 2.0 * g @ k + np.sum(M * tt))
+    return k.reshape(n, 3), max(res, 0.0) / (n * F)
+
+
+# ----------------------------------------------------------------------- candidates
+@dataclass
+class Candidate:
+    """A putative merge of vertices ``j1 < j2``."""
+
+    j1: int
+    j2: int
+    residual: float
+    ends: np.ndarray = field(repr=False)  # endpoints of the merged vertex
+    k: np.ndarray | None = field(default=None, repr=False)  # their least-squares joint (merge_init="joint")
+    score: float = np.nan
+    key: tuple = ()  # identifies the merge across stages (endpoint ids are stable)
+    fresh: bool = True  # scored at this stage (False: score reused from an earlier stage)
+
+
+def merge_candidates(st: StickState, settings: EMSettings) -> list[Candidate]:
+    """Every valid merge (deduplicated for ``merge_init="joint"``), with its joint residual."""
+    comp_s, comp_v = components(st)
+    J = st.n_vertices
+    E = st.ends_per_stick
+    cnt = st.vertex_counts()
+    # A side is a vertex, or a whole stick whose two endpoints are both alone (interchangeable).
+    sides: list[tuple[str, int]] = []
+    seen_free: set[int] = set()
+    for j in range(J):
+        own = np.flatnonzero(st.vertex_of == j)
+        if settings.merge_init == "joint" and cnt[j] == 1:
+            s = int(own[0] // E)
+            if np.all(cnt[st.vertex_of[E * s:E * (s + 1)]] == 1):
+                if s not in seen_free:
+                    seen_free.add(s)
+                    sides.append(("stick", s))
+                continue
+        sides.append(("vertex", j))
+
+    def side_comp(side: tuple[str, int]) -> int:
+        return int(comp_s[side[1]]) if side[0] == "stick" else int(comp_v[side[1]])
+
+    def side_key(side: tuple[str, int]) -> tuple:
+        if side[0] == "stick":
+            return ("stick", side[1])
+        return ("vertex",) + tuple(np.flatnonzero(st.vertex_of == side[1]).tolist())
+
+    stats = pair_stats(st)
+    out: list[Candidate] = []
+    for ia, a in enumerate(sides):
+        for b in sides[ia + 1:]:
+            if side_comp(a) == side_comp(b):
+                continue
+            ends, k0 = [], []
+            for kind, x in (a, b):
+                if kind == "stick":
+                    ends.append(-1 - x)  # resolved after the fit
+                    k0.append(st.ends[E * x:E * (x + 1)].mean(axis=0))
+                else:
+                    for i in np.flatnonzero(st.vertex_of == x):
+                        ends.append(int(i))
+                        k0.append(st.ends[i])
+            sticks = [(-1 - e) if e < 0 else e // E for e in ends]
+            k, res = joint_least_squares(st, sticks, k0, stats=stats)
+            resolved = []
+            for e, kk in zip(ends, k):
+                if e < 0:  # pick the free stick's endpoint nearer the joint
+                    s = -1 - e
+                    d = np.linalg.norm(st.ends[E * s:E * (s + 1)] - kk, axis=1)
+                    e = E * s + int(np.argmin(d))
+                resolved.append(e)
+            resolved = np.asarray(resolved)
+            vs = sorted({int(st.vertex_of[e]) for e in resolved})
+            if len(vs) != 2:
+                continue
+            out.append(Candidate(j1=vs[0], j2=vs[1], residual=res, ends=resolved,
+                                 k=k if settings.merge_init == "joint" else None,
+                                 key=tuple(sorted([side_key(a), side_key(b)]))))
+    if settings.max_candidates is not None and len(out) > settings.max_candidates:
+        order = np.argsort([c.residual for c in out], kind="stable")[: settings.max_candidates]
+        out = [out[i] for i in sorted(order)]
+    return out
+
+
+# ------------------------------------------------------------------------- merging
+def merge_vertices(st: StickState, cand: Candidate, priors: Priors, init: str) -> StickState:
+    """A copy of ``st`` with vertices ``cand.j1`` and ``cand.j2`` merged and warm-started."""
+    j1, j2 = cand.j1, cand.j2
+    D, F = st.n_dims, st.n_frames
+    out = st.copy()
+    ends = np.flatnonzero((st.vertex_of == j1) | (st.vertex_of == j2))
+    n = float(ends.size)
+    keep = np.ones(st.n_vertices, bool)
+    keep[j2] = False
+    vnew = np.cumsum(keep) - 1
+    vnew[j2] = vnew[j1]
+    out.vertex_of = vnew[st.vertex_of]
+    jn = int(vnew[j1])
+    out.mu_v, out.tau_v = st.mu_v[keep].copy(), st.tau_v[keep].copy()
+    out.alpha, out.beta = st.alpha[keep].copy(), st.beta[keep].copy()
+    if st.ghosts is not None:
+        g = st.ghosts
+        out.ghosts = Ghosts(g.n[keep], g.sum[keep], g.sq[keep], g.var[keep])
+    a1, a2 = st.alpha[j1] / st.beta[j1], st.alpha[j2] / st.beta[j2]
+    if init == "joint" and cand.k is not None:
+        order = {int(e): r for r, e in enumerate(cand.ends)}
+        for e in ends:
+            out.ends[e] = cand.k[order[int(e)]]
+        s = ends // st.ends_per_stick
+        pred = (st.rot[s] @ out.ends[ends][:, None, :, None])[..., 0] + st.trans[s]
+        mu = pred.mean(axis=0)
+        ss = float(np.sum((pred - mu) ** 2))
+        a = min(D * F * n / max(ss, 1e-300), max(a1, a2))
+        out.mu_e[ends] = pred
+    elif init == "mean":
+        n1 = float(np.sum(st.vertex_of == j1))
+        n2 = n - n1
+        mu = (n1 * st.mu_v[j1] + n2 * st.mu_v[j2]) / n
+        a = 1.0 / (n1 / (n * a1) + n2 / (n * a2))
+    else:
+        raise ValueError(f"merge_init must be 'joint' or 'mean', got {init!r}")
+    out.mu_v[jn] = mu
+    out.alpha[jn] = priors.alpha0 + 0.5 * D * F * n
+    out.beta[jn] = out.alpha[jn] / a
+    out.tau_v[jn] = a * n + st.tau_t * chain_degree(F)
+    update_endpoints(out)
+    return out
+
+
+def polish_joints(st: StickState, obs: Observations, priors: Priors, vertices: list[int], caps: list[float],
+                  n_polish: int) -> None:
+    """Re-fit the joints just created and the motions of their sticks together (in place).
+
+    The least-squares joint uses the sticks' current rotations, which can be
+    wrong where the data alone leave them ambiguous (a nearly planar stick can be
+    mirrored frame by frame without changing its projection; only a joint off its
+    plane tells the two apart). ``n_polish`` rounds of: least-squares joint for
+    every vertex in ``vertices``; its endpoints and the vertex set to the joint;
+    motions re-solved with the multi-start rotation search
+    (:func:`~stickfigure.models.em.updates.best_rotations`) and local
+    coordinates updated. Then each joint's precision starts at
+    ``min(D F n / residual, cap)``. Every step is an EM coordinate update of the
+    model with these vertices held hard, so the polish only moves the merge to a
+    better starting point; the scoring EM iterations that follow are the judge.
+    """
+    from .updates import update_local, update_motions
+
+    E = st.ends_per_stick
+    D, F = st.n_dims, st.n_frames
+    involved = np.unique(np.concatenate([np.flatnonzero(st.vertex_of == j) // E for j in vertices]))
+    for it in range(n_polish + 1):
+        for j in vertices:
+            ends = np.flatnonzero(st.vertex_of == j)
+            k, _ = joint_least_squares(st, list(ends // E), list(st.ends[ends]))
+            st.ends[ends] = k
+            pred = (st.rot[ends // E] @ k[:, None, :, None])[..., 0] + st.trans[ends // E]
+            mu = pred.mean(axis=0)
+            if it < n_polish:
+                st.mu_e[ends] = mu
+            else:
+                st.mu_e[ends] = pred
+            st.mu_v[j] = mu
+        if it < n_polish:
+            update_motions(st, obs, global_search=True, sticks=involved, use_polar=False)
+            update_local(st, obs, priors)
+    for j, cap in zip(vertices, caps):
+        ends = np.flatnonzero(st.vertex_of == j)
+        n = float(ends.size)
+        ss = float(np.sum((st.mu_e[ends] - st.mu_v[j]) ** 2))
+        a = min(D * F * n / max(ss, 1e-300), cap)
+        st.alpha[j] = priors.alpha0 + 0.5 * D * F * n
+        st.beta[j] = st.alpha[j] / a
+        st.tau_v[j] = a * n + st.tau_t * chain_degree(F)
+    update_endpoints(st)
+
+
+def _block(st: StickState, obs: Observations, sticks: np.ndarray) -> tuple[StickState, Observations, dict]:
+    """The sub-model of ``sticks``: their points, endpoints and vertices; other endpoints become ghosts."""
+    S = st.n_sticks
+    in_b = np.zeros(S, bool)
+    in_b[sticks] = True
+    pts = np.flatnonzero(in_b[st.labels])
+    E = st.ends_per_stick
+    ends = np.flatnonzero(np.repeat(in_b, E))
+    verts = np.unique(st.vertex_of[ends])
+    smap = -np.ones(S, np.int64)
+    smap[sticks] = np.arange(sticks.size)
+    vmap = -np.ones(st.n_vertices, np.int64)
+    vmap[verts] = np.arange(verts.size)
+    F, D = st.n_frames, st.n_dims
+    # Ghosts: endpoints of other sticks on the block's vertices.
+    other = np.flatnonzero(~np.repeat(in_b, E) & np.isin(st.vertex_of, verts))
+    Jb = verts.size
+    gn = np.zeros(Jb)
+    gsum = np.zeros((Jb, F, D))
+    gsq = np.zeros((Jb, F))
+    gvar = np.zeros((Jb, F))
+    if other.size:
+        gv = vmap[st.vertex_of[other]]
+        np.add.at(gn, gv, 1.0)
+        np.add.at(gsum, gv, st.mu_e[other])
+        np.add.at(gsq, gv, np.sum(st.mu_e[other] ** 2, axis=2))
+        np.add.at(gvar, gv, np.broadcast_to((D / st.tau_e[other])[:, None], (other.size, F)))
+    if st.ghosts is not None:
+        g = st.ghosts
+        gn += g.n[verts]
+        gsum += g.sum[verts]
+        gsq += g.sq[verts]
+        gvar += g.var[verts]
+    sub = StickState(labels=smap[st.labels[pts]], vertex_of=vmap[st.vertex_of[ends]], rot=st.rot[sticks],
+                     trans=st.trans[sticks], local=st.local[pts], ends=st.ends[ends], mu_e=st.mu_e[ends],
+                     tau_e=st.tau_e[ends], mu_v=st.mu_v[verts], tau_v=st.tau_v[verts], alpha=st.alpha[verts],
+                     beta=st.beta[verts], tau_w=st.tau_w, tau_m=st.tau_m, tau_t=st.tau_t,
+                     ghosts=Ghosts(gn, gsum, gsq, gvar))
+    maps = {"sticks": sticks, "points": pts, "ends": ends, "verts": verts}
+    return sub, obs.take(pts), maps
+
+
+def _union(parts: list[tuple[StickState, Observations]]) -> tuple[StickState, Observations, np.ndarray, np.ndarray]:
+    """Disjoint union of block models (one EM run optimises all of them independently).
+
+    Returns the union, its observations, and the block id of every stick and vertex.
+    """
+    st0 = parts[0][0]
+    so = vo = 0
+    labels, vertex_of, sblock, vblock = [], [], [], []
+    for b, (s, _) in enumerate(parts):
+        labels.append(s.labels + so)
+        vertex_of.append(s.vertex_of + vo)
+        sblock.append(np.full(s.n_sticks, b))
+        vblock.append(np.full(s.n_vertices, b))
+        so += s.n_sticks
+        vo += s.n_vertices
+
+    def cat(name: str) -> np.ndarray:
+        return np.concatenate([getattr(s, name) for s, _ in parts])
+
+    gh = [s.ghosts for s, _ in parts]
+    u = StickState(labels=np.concatenate(labels), vertex_of=np.concatenate(vertex_of), rot=cat("rot"),
+                   trans=cat("trans"), local=cat("local"), ends=cat("ends"), mu_e=cat("mu_e"), tau_e=cat("tau_e"),
+                   mu_v=cat("mu_v"), tau_v=cat("tau_v"), alpha=cat("alpha"), beta=cat("beta"), tau_w=st0.tau_w,
+                   tau_m=st0.tau_m, tau_t=st0.tau_t,
+                   ghosts=Ghosts(np.concatenate([g.n for g in gh]), np.concatenate([g.sum for g in gh]),
+                                 np.concatenate([g.sq for g in gh]), np.concatenate([g.var for g in gh])))
+    obs = Observations(np.concatenate([o.w for _, o in parts]), np.concatenate([o.mask for _, o in parts]))
+    return u, obs, np.concatenate(sblock), np.concatenate(vblock)
+
+
+def _cap(st: StickState, cand: Candidate) -> float:
+    """Largest starting precision of a merged vertex: the larger of the two merged ones."""
+    return float(max(st.alpha[cand.j1] / st.beta[cand.j1], st.alpha[cand.j2] / st.beta[cand.j2]))
+
+
+def _g_prior_change(st: StickState, cand: Candidate) -> float:
+    """Change of log P(G) (ML multinomial) when the two vertices merge."""
+    n1 = float(np.sum(st.vertex_of == cand.j1))
+    n2 = float(np.sum(st.vertex_of == cand.j2))
+    tot = float(st.vertex_of.size)
+
+    def f(n: float) -> float:
+        return n * np.log(n / tot)
+
+    return f(n1 + n2) - f(n1) - f(n2)
+
+
+def score_candidates(st: StickState, obs: Observations, priors: Priors, settings: EMSettings,
+                     cands: list[Candidate], rng: np.random.Generator) -> list[StickState | None]:
+    """Set ``cand.score`` (change of the objective) for every candidate.
+
+    Returns the optimised states: for ``merge_scope="full"`` whole-model copies,
+    for ``"local"`` the blocks (re-inserted by :func:`apply_merge`).
+    """
+    if settings.merge_scope not in ("local", "full"):
+        raise ValueError(f"merge_scope must be 'local' or 'full', got {settings.merge_scope!r}")
+    if settings.merge_baseline:
+        # The model without a merge, run for the same iterations (global precisions fixed for
+        # "local", as in the blocks): scores then measure the merge, not the convergence still
+        # going on in slowly converging sticks.
+        base_st = st.copy()
+        for _ in range(settings.n_iter_merge):
+            em_sweep(base_st, obs, priors, precisions=settings.merge_scope == "full", local=True,
+                     n_procrustes=settings.n_procrustes)
+    else:
+        base_st = st
+    if settings.merge_scope == "full":
+        base = objective(base_st, obs, priors)
+        outs: list[StickState | None] = []
+        for c in cands:
+            m = merge_vertices(st, c, priors, settings.merge_init)
+            if settings.merge_init == "joint" and settings.n_polish:
+                polish_joints(m, obs, priors, [c.j1], [_cap(st, c)], settings.n_polish)
+            m, val, _ = run_em(m, obs, priors, replace_tol(settings), settings.n_iter_merge, rng, resample=False)
+            c.score = val - base
+            outs.append(m)
+        return outs
+    ps, pv = objective_terms(base_st, obs, priors)
+    results: list[StickState | None] = [None] * len(cands)
+    prepared = []
+    for idx, c in enumerate(cands):
+        sticks = np.unique(c.ends // st.ends_per_stick)
+        sub, sobs, maps = _block(st, obs, sticks)
+        vm = {int(v): r for r, v in enumerate(maps["verts"])}
+        em = {int(e): r for r, e in enumerate(maps["ends"])}
+        local_c = Candidate(j1=vm[c.j1], j2=vm[c.j2], residual=c.residual,
+                            ends=np.array([em[int(e)] for e in c.ends]), k=c.k)
+        sub = merge_vertices(sub, local_c, priors, settings.merge_init)
+        before = float(ps[sticks].sum() + pv[maps["verts"]].sum())
+        # After merge_vertices the merged vertex keeps index j1 (j1 < j2).
+        prepared.append((idx, sub, sobs, maps, before, local_c.j1))
+    batch: list = []
+    size = 0
+    for item in prepared + [None]:
+        if item is not None:
+            batch.append(item)
+            size += item[2].w.size
+        if batch and (item is None or size >= settings.batch_size):
+            u, uobs, sb, vb = _union([(it[1], it[2]) for it in batch])
+            if settings.merge_init == "joint" and settings.n_polish:
+                offs = np.concatenate([[0], np.cumsum([it[1].n_vertices for it in batch])])
+                polish_joints(u, uobs, priors, [int(offs[r] + it[5]) for r, it in enumerate(batch)],
+                              [_cap(st, cands[it[0]]) for it in batch], settings.n_polish)
+            for _ in range(settings.n_iter_merge):
+                em_sweep(u, uobs, priors, precisions=False, local=True, n_procrustes=settings.n_procrustes)
+            ups, upv = objective_terms(u, uobs, priors)
+            after = np.bincount(sb, weights=ups, minlength=len(batch)) + np.bincount(vb, weights=upv,
+                                                                                      minlength=len(batch))
+            so = vo = po = 0
+            for r, (idx, sub, sobs, maps, before, _) in enumerate(batch):
+                c = cands[idx]
+                c.score = float(after[r] - before) + _g_prior_change(st, c)
+                ns, nv, npnt = sub.n_sticks, sub.n_vertices, sobs.n_points
+                E = sub.ends_per_stick
+                done = StickState(labels=sub.labels, vertex_of=sub.vertex_of, rot=u.rot[so:so + ns],
+                                  trans=u.trans[so:so + ns], local=u.local[po:po + npnt],
+                                  ends=u.ends[E * so:E * (so + ns)], mu_e=u.mu_e[E * so:E * (so + ns)],
+                                  tau_e=u.tau_e[E * so:E * (so + ns)], mu_v=u.mu_v[vo:vo + nv],
+                                  tau_v=u.tau_v[vo:vo + nv], alpha=u.alpha[vo:vo + nv], beta=u.beta[vo:vo + nv],
+                                  tau_w=u.tau_w, tau_m=u.tau_m, tau_t=u.tau_t, ghosts=sub.ghosts)
+                done._maps = maps  # type: ignore[attr-defined]
+                results[idx] = done
+                so, vo, po = so + ns, vo + nv, po + npnt
+            batch, size = [], 0
+    return results
+
+
+def _score_into(st: StickState, obs: Observations, priors: Priors, settings: EMSettings,
+                cands: list[Candidate], rng: np.random.Generator, blocks: dict[int, StickState | None]) -> None:
+    """Score ``cands`` (fresh) and remember their optimised states by candidate id."""
+    if not cands:
+        return
+    for c, b in zip(cands, score_candidates(st, obs, priors, settings, cands, rng)):
+        c.fresh = True
+        blocks[id(c)] = b
+
+
+def replace_tol(settings: EMSettings) -> EMSettings:
+    from dataclasses import replace
+
+    return replace(settings, tol=0.0)
+
+
+def apply_merge(st: StickState, cand: Candidate, priors: Priors, settings: EMSettings,
+                block: StickState | None) -> StickState:
+    """The full model with ``cand`` merged, warm-started from its scored block (or copy)."""
+    merged = merge_vertices(st, cand, priors, settings.merge_init)
+    if block is None:
+        return merged
+    if settings.merge_scope == "full":
+        return block
+    maps = block._maps  # type: ignore[attr-defined]
+    keep = np.ones(st.n_vertices, bool)
+    keep[cand.j2] = False
+    vnew = np.cumsum(keep) - 1
+    vnew[cand.j2] = vnew[cand.j1]
+    sticks, pts, ends = maps["sticks"], maps["points"], maps["ends"]
+    bverts = np.unique(vnew[maps["verts"]])  # block vertices in the merged numbering, sorted as in the block
+    merged.rot[sticks], merged.trans[sticks] = block.rot, block.trans
+    merged.local[pts] = block.local
+    merged.ends[ends], merged.mu_e[ends], merged.tau_e[ends] = block.ends, block.mu_e, block.tau_e
+    merged.mu_v[bverts], merged.tau_v[bverts] = block.mu_v, block.tau_v
+    merged.alpha[bverts], merged.beta[bverts] = block.alpha, block.beta
+    merged._quat = None
+    return merged
+
+
+# ----------------------------------------------------------------------- the search
+def n_parameters(st: StickState, obs: Observations) -> int:
+    """Free parameters of the articulated model with rigid joints (for BIC).
+
+    Per stick and frame 3 rotation angles; per connected tree and frame D
+    translation components (a joint fixes the child's translation); 3 local
+    coordinates per point and per endpoint in a joint; the three precisions.
+    """
+    comp_s, _ = components(st)
+    F, D = st.n_frames, st.n_dims
+    in_joint = st.vertex_counts()[st.vertex_of] >= 2
+    return int(3 * st.n_sticks * F + D * F * (comp_s.max() + 1) + 3 * obs.n_points + 3 * in_joint.sum() + 3)
+
+
+@dataclass
+class Stage:
+    """What is kept of every merge stage (the selected stages keep their full state)."""
+
+    objective: float
+    bic: float
+    labels: np.ndarray
+    vertex_of: np.ndarray
+    edges: list[tuple[int, int]]
+    merged: tuple[int, int] | None
+    n_sweeps: int
+    ends_xy: np.ndarray  # (ES, D) endpoint means at the reference frame
+    joints_xy: np.ndarray  # (J, D) vertex means at the reference frame
+    state: StickState | None = None
+
+
+def _stage(st: StickState, obs: Observations, value: float, merged: tuple[int, int] | None, sweeps: int,
+           ref: int) -> Stage:
+    N = float(obs.mask.sum() * obs.n_dims)
+    bic = value - 0.5 * n_parameters(st, obs) * np.log(N)
+    edges, _ = stick_edges(st)
+    return Stage(objective=value, bic=float(bic), labels=st.labels.copy(), vertex_of=st.vertex_of.copy(),
+                 edges=edges, merged=merged, n_sweeps=sweeps, ends_xy=st.mu_e[:, ref].copy(),
+                 joints_xy=st.mu_v[:, ref].copy())
+
+
+def learn_structure(st: StickState, obs: Observations, priors: Priors, settings: EMSettings,
+                    rng: np.random.Generator, *, selection: str = "objective",
+                    progress: Callable[[int, int, float], None] | None = None) -> tuple[list[Stage], int]:
+    """Fig. 3 of the paper from an initial state; returns every stage and the selected one.
+
+    The states of the best stage under each criterion are kept in ``Stage.state``.
+    """
+    ref = int(np.argmax(obs.mask.sum(axis=0)))
+    st, val, sweeps = run_em(st, obs, priors, settings, settings.n_iter, rng)
+    stages = [_stage(st, obs, val, None, sweeps, ref)]
+    best = {"objective": (stages[0].objective, 0, st.copy()), "bic": (stages[0].bic, 0, st.copy())}
+    total = st.n_sticks - 1 if settings.max_merges is None else min(settings.max_merges, st.n_sticks - 1)
+    if progress:
+        progress(0, total, val)
+    k = 0
+    cache: dict[tuple, tuple[float, frozenset]] = {}
+    while settings.max_merges is None or k < settings.max_merges:
+        cands = merge_candidates(st, settings)
+        if not cands:
+            break
+        todo = []
+        for c in cands:
+            hit = cache.get(c.key) if settings.reuse_scores else None
+            if hit is None:
+                todo.append(c)
+            else:
+                c.score, c.fresh = hit[0], False
+        blocks: dict[int, StickState | None] = {}
+        _score_into(st, obs, priors, settings, todo, rng, blocks)
+        while True:  # lazy greedy: a reused score must be confirmed before its merge is taken
+            b = int(np.argmax([c.score for c in cands]))
+            c = cands[b]
+            if c.fresh:
+                break
+            c.fresh = True
+            _score_into(st, obs, priors, settings, [c], rng, blocks)
+        for x in cands:
+            cache[x.key] = (x.score, frozenset((x.ends // st.ends_per_stick).tolist()))
+        j1, j2 = c.j1, c.j2
+        merged_sticks = set((np.flatnonzero((st.vertex_of == j1) | (st.vertex_of == j2))
+                             // st.ends_per_stick).tolist())
+        old_labels, old_S = st.labels, st.n_sticks
+        st = apply_merge(st, c, priors, settings, blocks.get(id(c)))
+        st, val, sweeps = run_em(st, obs, priors, settings, settings.n_iter, rng)
+        # Scores of merges whose sticks the merge or the resampling touched are stale.
+        if st.n_sticks != old_S:
+            cache.clear()
+        else:
+            moved = set(old_labels[st.labels != old_labels].tolist()) | set(st.labels[st.labels != old_labels].tolist())
+            dirty = merged_sticks | moved
+            cache = {key: v for key, v in cache.items() if not (v[1] & dirty)}
+        k += 1
+        stages.append(_stage(st, obs, val, (j1, j2), sweeps, ref))
+        for crit in ("objective", "bic"):
+            v = getattr(stages[-1], crit)
+            if v > best[crit][0]:
+                best[crit] = (v, len(stages) - 1, st.copy())
+        if progress:
+            comp_s, _ = components(st)
+            progress(k, k + int(comp_s.max()), val)
+    for crit in ("objective", "bic"):
+        stages[best[crit][1]].state = best[crit][2]
+    if selection not in ("objective", "bic"):
+        raise ValueError(f"selection must be 'objective' or 'bic', got {selection!r}")
+    return stages, best[selection][1]

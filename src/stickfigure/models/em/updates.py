@@ -1,0 +1,553 @@
+"""The variational EM updates of Ross, Tarlow & Zemel (section 4.1), vectorised.
+
+Each function maximises the objective (:func:`model.objective_terms`) over one
+block of variables with the others fixed, so a sweep never decreases it
+(tests/test_em_updates.py checks this after every single update). Nothing
+loops over frames: updates act on stacked (stick, frame) or (vertex, frame)
+arrays, the vertex chain is one banded solve over all vertices at once.
+
+Where the printed updates differ (docs/em.md has the derivations):
+
+* **Translations.** The paper's update has ``M_s^f k_i`` (which contains the
+  unknown ``t``) on its right-hand side. Setting the derivative of
+  ``tau_w sum_p o_pf |w - R l - t|^2 + tau_m sum_i |mu(e_i) - R k_i - t|^2`` to zero
+  gives ``t = [tau_w sum_p o_pf (w - R l) + tau_m sum_i (mu(e_i) - R k_i)] /
+  (tau_w n_sf + E tau_m)`` with ``n_sf`` the number of the stick's points seen in
+  frame f. We solve rotation and translation *jointly*: with weighted centroids
+  the optimal t for any R is ``a_bar - R b_bar``, which leaves a centred
+  Procrustes problem for R alone.
+* **Rotations.** For a 2x3 R with orthonormal rows the SVD solution is exact
+  only when the source points are isotropic, because ``|R B|^2`` depends on R.
+  We start from it and take Green-Gower completion steps (each a 3x3 orthogonal
+  Procrustes problem solved by SVD), via
+  :func:`stickfigure.geometry.orthogonal_procrustes_rows`; the new rotation is
+  kept only where it lowers the stick's energy, so the step is monotone.
+* **Vertices.** The paper's mean update for ``mu(v_j^f)`` depends on its temporal
+  neighbours: it is one Gauss-Seidel sweep of the tridiagonal system
+  ``(a_j n_j + tau_t c_f) mu_f - tau_t (mu_f-1 + mu_f+1) = a_j sum_i mu(e_i^f)``. We
+  solve that system exactly with one ``scipy.linalg.solveh_banded`` call on the
+  chain of all vertices laid end to end (zero coupling between vertices).
+* **Missing data** drops out of every point sum (``o_pf``), including the counts
+  in tau_w and in the translation's denominator.
+* **Dimension.** The printed precision updates are for D = 2 with isotropic
+  posteriors; we keep D symbolic (e.g. ``alpha(phi_j) = alpha_j + D F n_j / 2``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.linalg import solveh_banded
+
+from .model import Observations, Priors, StickState, chain_degree
+
+__all__ = ["update_endpoints", "update_vertices", "update_phi", "update_motions", "update_local",
+           "update_ends", "update_precisions", "em_sweep"]
+
+
+def update_endpoints(st: StickState) -> None:
+    """Gaussian posterior of every endpoint given its stick and its vertex.
+
+    ``tau(e_i) = tau_m + a_g``, ``mu(e_i^f) = (tau_m R k_i + t + a_g mu(v_g^f)) / tau(e_i)``.
+    """
+    a = (st.alpha / st.beta)[st.vertex_of]  # (ES,)
+    tau = st.tau_m + a
+    pred = st.end_predictions()
+    st.mu_e = (st.tau_m * pred + a[:, None, None] * st.mu_v[st.vertex_of]) / tau[:, None, None]
+    st.tau_e = tau
+
+
+def _vertex_sums(st: StickState) -> tuple[np.ndarray, np.ndarray]:
+    """Endpoint count (J,) and sum of endpoint means (J, F, D) per vertex, ghosts included."""
+    J, F, D = st.mu_v.shape
+    n = st.vertex_counts()
+    s = np.zeros((J, F * D))
+    np.add.at(s, st.vertex_of, st.mu_e.reshape(-1, F * D))
+    s = s.reshape(J, F, D)
+    if st.ghosts is not None:
+        n = n + st.ghosts.n
+        s = s + st.ghosts.sum
+    return n, s
+
+
+def update_vertices(st: StickState) -> None:
+    """Exact Gaussian posterior means of all vertex chains, and their precisions.
+
+    ``tau(v_j^f) = a_j n_j + tau_t c_f`` (c_f = 1 at the ends, 2 inside) is the
+    diagonal of the chain's precision matrix (the mean-field optimum); the means
+    solve the full tridiagonal system (the mean-field fixed point, which the
+    paper's update approaches one sweep at a time).
+    """
+    J, F, D = st.mu_v.shape
+    a = st.alpha / st.beta
+    n, s = _vertex_sums(st)
+    c = chain_degree(F)
+    diag = (a * n)[:, None] + st.tau_t * c[None, :]  # (J, F)
+    st.tau_v = diag
+    if F == 1:
+        st.mu_v = (a[:, None, None] * s) / diag[..., None]
+        return
+    ab = np.empty((2, J * F))
+    ab[1] = diag.ravel()
+    sup = np.full((J, F), -st.tau_t)
+    sup[:, 0] = 0.0  # no coupling between the last frame of one vertex and the first of the next
+    ab[0] = sup.ravel()
+    rhs = (a[:, None, None] * s).reshape(J * F, D)
+    st.mu_v = solveh_banded(ab, rhs, lower=False, check_finite=False).reshape(J, F, D)
+
+
+def update_phi(st: StickState, priors: Priors) -> None:
+    """Gamma posterior of the vertex precisions.
+
+    ``alpha(phi_j) = alpha_0 + D F n_j / 2`` and ``beta(phi_j) = beta_0 + 1/2 sum_{i in j, f}
+    (|mu(e_i^f) - mu(v_j^f)|^2 + D / tau(e_i) + D / tau(v_j^f))`` (for D = 2 the paper's form).
+    """
+    J, F, D = st.mu_v.shape
+    g = st.vertex_of
+    dv = st.mu_e - st.mu_v[g]
+    per_end = np.sum(dv * dv, axis=(1, 2)) + F * D / st.tau_e + D * np.sum(1.0 / st.tau_v[g], axis=1)
+    ss = np.bincount(g, weights=per_end, minlength=J)
+    n = st.vertex_counts()
+    if st.ghosts is not None:
+        gh = st.ghosts
+        gsq = gh.sq - 2.0 * np.sum(gh.sum * st.mu_v, axis=2) + gh.n[:, None] * np.sum(st.mu_v ** 2, axis=2)
+        ss = ss + np.sum(gsq + gh.var + gh.n[:, None] * D / st.tau_v, axis=1)
+        n = n + gh.n
+    st.alpha = priors.alpha0 + 0.5 * D * F * n
+    st.beta = priors.beta0 + 0.5 * np.maximum(ss, 0.0)
+
+
+def _motion_statistics(st: StickState, obs: Observations) -> tuple[np.ndarray, ...]:
+    """Weighted centroids and centred second moments of each (stick, frame) Procrustes problem.
+
+    Sources are the stick's visible points (weight tau_w, target w, source l)
+    and its two endpoints (weight tau_m, target mu(e), source k).
+
+    Returns
+    -------
+    a_bar : (S, F, D), b_bar : (S, F, 3), C_ab : (S, F, D, 3), C_bb : (S, F, 3, 3)
+    """
+    S, F, D = st.trans.shape
+    des = st.design(obs)
+    s_l, s_ll, s_wl = des.point_stats(st.local)
+    s_w, n = des.s_w, des.n
+    tw, tm = st.tau_w, st.tau_m
+    E = st.ends_per_stick
+    ends = st.ends.reshape(S, E, 3)
+    mue = st.mu_e.reshape(S, E, F, D)
+    W0 = tw * n + E * tm  # (S, F)
+    a_bar = (tw * s_w + tm * mue.sum(axis=1)) / W0[..., None]
+    b_bar = (tw * s_l + tm * ends.sum(axis=1)[:, None, :]) / W0[..., None]
+    e_cross = sum(mue[:, e, :, :, None] * ends[:, e, None, None, :] for e in range(E))  # (S, F, D, 3)
+    C_ab = tw * s_wl + tm * e_cross - W0[..., None, None] * (a_bar[..., :, None] * b_bar[..., None, :])
+    kk = np.swapaxes(ends, 1, 2) @ ends  # (S, 3, 3)
+    C_bb = tw * s_ll + tm * kk[:, None] - W0[..., None, None] * (b_bar[..., :, None] * b_bar[..., None, :])
+    C_bb = 0.5 * (C_bb + np.swapaxes(C_bb, -1, -2))
+    return a_bar, b_bar, C_ab, C_bb
+
+
+def _rotation_energy(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray) -> np.ndarray:
+    """``sum_n w_n |a_n - R b_n|^2`` (centred) up to a constant: ``-2 tr(R C_ab^T) + tr(R C_bb R^T)``."""
+    return np.sum((R @ C_bb - 2.0 * C_ab) * R, axis=(-1, -2))
+
+
+def _horn_matrix(C: np.ndarray) -> np.ndarray:
+    """The 4x4 symmetric ``N`` with ``q^T N q = tr(R(q)^T C)`` for unit quaternions q = (w, x, y, z).
+
+    (Horn 1987.) Maximising ``tr(R^T C)`` over proper rotations is then the top
+    eigenvector problem of N.
+    """
+    c = C
+    N = np.empty(C.shape[:-2] + (4, 4))
+    N[..., 0, 0] = c[..., 0, 0] + c[..., 1, 1] + c[..., 2, 2]
+    N[..., 1, 1] = c[..., 0, 0] - c[..., 1, 1] - c[..., 2, 2]
+    N[..., 2, 2] = -c[..., 0, 0] + c[..., 1, 1] - c[..., 2, 2]
+    N[..., 3, 3] = -c[..., 0, 0] - c[..., 1, 1] + c[..., 2, 2]
+    N[..., 0, 1] = N[..., 1, 0] = c[..., 2, 1] - c[..., 1, 2]
+    N[..., 0, 2] = N[..., 2, 0] = c[..., 0, 2] - c[..., 2, 0]
+    N[..., 0, 3] = N[..., 3, 0] = c[..., 1, 0] - c[..., 0, 1]
+    N[..., 1, 2] = N[..., 2, 1] = c[..., 0, 1] + c[..., 1, 0]
+    N[..., 1, 3] = N[..., 3, 1] = c[..., 0, 2] + c[..., 2, 0]
+    N[..., 2, 3] = N[..., 3, 2] = c[..., 1, 2] + c[..., 2, 1]
+    return N
+
+
+def quat_to_rot(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of unit quaternions (..., 4) = (w, x, y, z)."""
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    ww, xx, yy, zz = w * w, x * x, y * y, z * z
+    xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
+    R = np.empty(q.shape[:-1] + (3, 3))
+    R[..., 0, 0] = ww + xx - yy - zz
+    R[..., 0, 1] = 2 * (xy - wz)
+    R[..., 0, 2] = 2 * (xz + wy)
+    R[..., 1, 0] = 2 * (xy + wz)
+    R[..., 1, 1] = ww - xx + yy - zz
+    R[..., 1, 2] = 2 * (yz - wx)
+    R[..., 2, 0] = 2 * (xz - wy)
+    R[..., 2, 1] = 2 * (yz + wx)
+    R[..., 2, 2] = ww - xx - yy + zz
+    return R
+
+
+def rot_to_quat(R: np.ndarray) -> np.ndarray:
+    """Unit quaternions (..., 4) of proper rotations (..., 3, 3) (Shepperd's method, vectorised)."""
+    m = R
+    tr = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
+    cand = np.stack([
+        np.stack([1 + tr, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1),
+        np.stack([m[..., 2, 1] - m[..., 1, 2], 1 + 2 * m[..., 0, 0] - tr, m[..., 0, 1] + m[..., 1, 0],
+                  m[..., 0, 2] + m[..., 2, 0]], -1),
+        np.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 0, 1] + m[..., 1, 0], 1 + 2 * m[..., 1, 1] - tr,
+                  m[..., 1, 2] + m[..., 2, 1]], -1),
+        np.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1],
+                  1 + 2 * m[..., 2, 2] - tr], -1),
+    ], -2)  # row k is 4 q_k q
+    diag = np.stack([1 + tr, 1 + 2 * m[..., 0, 0] - tr, 1 + 2 * m[..., 1, 1] - tr, 1 + 2 * m[..., 2, 2] - tr], -1)
+    k = np.argmax(diag, axis=-1)
+    q = np.take_along_axis(cand, k[..., None, None], axis=-2)[..., 0, :]
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def complete_rotation(R: np.ndarray) -> np.ndarray:
+    """Proper 3x3 rotations whose first D rows are ``R`` (..., D, 3) with orthonormal rows."""
+    if R.shape[-2] == 3:
+        return R  # assumed proper
+    r3 = np.cross(R[..., 0, :], R[..., 1, :])
+    return np.concatenate([R, r3[..., None, :]], axis=-2)
+
+
+def procrustes_step(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, *, n_outer: int = 1,
+                    n_square: int = 3, quat: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A monotone step for ``min_R -2 tr(R C_ab^T) + tr(R C_bb R^T)`` over R (..., D, 3), R R^T = I.
+
+    For D = 2 this is projection Procrustes; each outer iteration is a
+    Green-Gower completion step: with ``r3`` the current third row of the
+    rotation, ``C = [C_ab; r3^T C_bb]`` and the rotation maximising ``tr(Q^T C)``
+    does not increase the energy. That 3x3 problem is solved with Horn's
+    quaternion matrix N(C) by ``2**n_square`` steps of power iteration on the
+    shifted ``N + sigma I`` (positive semi-definite for ``sigma = sqrt(3) |C|_F``),
+    warm-started at the current rotation: each power step cannot lower the
+    Rayleigh quotient ``q^T N q = tr(R(q)^T C)``, so the whole step is monotone.
+    ``quat`` (..., 4), the quaternion of the current rotation, saves converting R.
+    Returns the new R and its quaternion.
+
+    Matrix squaring keeps it to a few batched 4x4 products: a batched 3x3 SVD
+    (what :func:`stickfigure.geometry.orthogonal_procrustes_rows` uses) costs about
+    5 us per matrix in LAPACK, 100x more, and this runs on every (stick, frame)
+    pair in every EM iteration.
+    """
+    D = R.shape[-2]
+    if quat is None:
+        Q = complete_rotation(R)
+        q = rot_to_quat(Q)
+    else:
+        q = quat
+        Q = quat_to_rot(q)
+    eye4 = np.eye(4)
+    for _ in range(n_outer if D == 2 else 1):
+        if D == 2:
+            r3 = Q[..., 2, :]
+            C = np.concatenate([C_ab, (r3[..., None, :] @ C_bb)], axis=-2)
+        else:
+            C = C_ab
+        N = _horn_matrix(C)
+        sigma = np.sqrt(3.0 * np.sum(C * C, axis=(-1, -2)))
+        M = N + sigma[..., None, None] * eye4
+        for _ in range(n_square):
+            M = M @ M
+            # PSD: the trace bounds every entry; rescaling keeps the powers finite.
+            tr = M[..., 0, 0] + M[..., 1, 1] + M[..., 2, 2] + M[..., 3, 3]
+            M = M / np.maximum(tr, 1e-300)[..., None, None]
+        q_new = (M @ q[..., None])[..., 0]
+        nrm = np.linalg.norm(q_new, axis=-1, keepdims=True)
+        q = np.where(nrm > 1e-300, q_new / np.maximum(nrm, 1e-300), q)
+        Q = quat_to_rot(q)
+    return Q[..., :D, :], q
+
+
+# Generators of so(3): _KG[a] = [e_a]_x.
+_KG = np.zeros((3, 3, 3))
+_KG[0, 1, 2], _KG[0, 2, 1] = -1.0, 1.0
+_KG[1, 0, 2], _KG[1, 2, 0] = 1.0, -1.0
+_KG[2, 0, 1], _KG[2, 1, 0] = -1.0, 1.0
+
+
+def _vee(M: np.ndarray) -> np.ndarray:
+    """(M23 - M32, M31 - M13, M12 - M21): ``tr([w]_x M) = w . vee(M)``."""
+    return np.stack([M[..., 1, 2] - M[..., 2, 1], M[..., 2, 0] - M[..., 0, 2], M[..., 0, 1] - M[..., 1, 0]], -1)
+
+
+def _solve3(H: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Batched 3x3 solve by cofactors (LAPACK's per-matrix overhead dominates at this size)."""
+    a, b_, c = H[..., 0, 0], H[..., 0, 1], H[..., 0, 2]
+    d, e, f = H[..., 1, 0], H[..., 1, 1], H[..., 1, 2]
+    g, h, i = H[..., 2, 0], H[..., 2, 1], H[..., 2, 2]
+    A, B, C = e * i - f * h, f * g - d * i, d * h - e * g
+    det = a * A + b_ * B + c * C
+    x0 = A * b[..., 0] + (c * h - b_ * i) * b[..., 1] + (b_ * f - c * e) * b[..., 2]
+    x1 = B * b[..., 0] + (a * i - c * g) * b[..., 1] + (c * d - a * f) * b[..., 2]
+    x2 = C * b[..., 0] + (b_ * g - a * h) * b[..., 1] + (a * e - b_ * d) * b[..., 2]
+    safe = np.where(np.abs(det) > 0, det, 1.0)
+    return np.stack([x0, x1, x2], -1) / safe[..., None], det
+
+
+def _rodrigues(w: np.ndarray) -> np.ndarray:
+    """exp([w]_x), shape (..., 3, 3)."""
+    th2 = np.sum(w * w, axis=-1)
+    th = np.sqrt(th2)
+    small = th2 < 1e-16
+    s = np.where(small, 1.0 - th2 / 6.0, np.sin(th) / np.where(small, 1.0, th))
+    c = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(th)) / np.where(small, 1.0, th2))
+    K = np.tensordot(w, _KG, axes=([-1], [0]))
+    return np.eye(3) + s[..., None, None] * K + c[..., None, None] * (K @ K)
+
+
+def _min_eig_sym3(H: np.ndarray) -> np.ndarray:
+    """Smallest eigenvalue of symmetric 3x3 matrices (closed form, trigonometric)."""
+    p1 = H[..., 0, 1] ** 2 + H[..., 0, 2] ** 2 + H[..., 1, 2] ** 2
+    q = (H[..., 0, 0] + H[..., 1, 1] + H[..., 2, 2]) / 3.0
+    p2 = (H[..., 0, 0] - q) ** 2 + (H[..., 1, 1] - q) ** 2 + (H[..., 2, 2] - q) ** 2 + 2.0 * p1
+    p = np.sqrt(p2 / 6.0)
+    B = (H - q[..., None, None] * np.eye(3)) / np.where(p > 0, p, 1.0)[..., None, None]
+    r = 0.5 * (B[..., 0, 0] * (B[..., 1, 1] * B[..., 2, 2] - B[..., 1, 2] * B[..., 2, 1])
+               - B[..., 0, 1] * (B[..., 1, 0] * B[..., 2, 2] - B[..., 1, 2] * B[..., 2, 0])
+               + B[..., 0, 2] * (B[..., 1, 0] * B[..., 2, 1] - B[..., 1, 1] * B[..., 2, 0]))
+    phi = np.arccos(np.clip(r, -1.0, 1.0)) / 3.0
+    return q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+
+
+def newton_step(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray) -> np.ndarray:
+    """One Newton step for ``f(R) = tr(R C_bb R^T) - 2 tr(R C_ab^T)`` on the rotations ``R Q``.
+
+    With ``Q = exp([w]_x)`` and ``P = R^T R``, ``N = C_ab^T R``, the expansion to
+    second order in w is ``f0 + g.w + w^T H w / 2`` with
+    ``g = vee(C_bb P - P C_bb) - 2 vee(N)`` and
+    ``H = -2 T + (M - tr(M) I) - 2 (sym(N) - tr(N) I)``, ``M = C_bb P + P C_bb``,
+    ``T_ab = sym(tr(P K_a C_bb K_b))`` (derived in docs/em.md; tested against finite
+    differences). Where H is not positive definite it is shifted by its smallest
+    eigenvalue (Levenberg-Marquardt), and steps are capped at 0.5 rad; the result
+    is kept only where f decreased.
+    """
+    P = np.swapaxes(R, -1, -2) @ R
+    N = np.swapaxes(C_ab, -1, -2) @ R
+    CP = C_bb @ P
+    g = _vee(CP - np.swapaxes(CP, -1, -2)) - 2.0 * _vee(N)
+    X = (P[..., None, :, :] @ _KG).reshape(P.shape[:-2] + (3, 9))  # P K_a
+    Y = np.swapaxes(C_bb[..., None, :, :] @ _KG, -1, -2).reshape(P.shape[:-2] + (3, 9))  # (C K_b)^T
+    T = X @ np.swapaxes(Y, -1, -2)
+    T = 0.5 * (T + np.swapaxes(T, -1, -2))
+    M = CP + np.swapaxes(CP, -1, -2)
+    Ns = 0.5 * (N + np.swapaxes(N, -1, -2))
+    eye = np.eye(3)
+    trM = M[..., 0, 0] + M[..., 1, 1] + M[..., 2, 2]
+    trN = N[..., 0, 0] + N[..., 1, 1] + N[..., 2, 2]
+    H = -2.0 * T + (M - trM[..., None, None] * eye) - 2.0 * (Ns - trN[..., None, None] * eye)
+    lam = _min_eig_sym3(H)
+    mu = np.maximum(0.0, -lam) + 1e-6 * np.abs(H).max(axis=(-1, -2)) + 1e-300
+    w, _ = _solve3(H + mu[..., None, None] * eye, -g)
+    w = np.where(np.all(np.isfinite(w), axis=-1, keepdims=True), w, 0.0)
+    # Long steps leave the region where the quadratic model holds.
+    nrm = np.linalg.norm(w, axis=-1, keepdims=True)
+    w = w * np.minimum(1.0, 0.5 / np.maximum(nrm, 1e-300))
+    R_new = R @ _rodrigues(w)
+    better = _rotation_energy(R_new, C_ab, C_bb) < _rotation_energy(R, C_ab, C_bb)
+    return np.where(better[..., None, None], R_new, R)
+
+
+#: A stick whose smallest principal spread is below this fraction of its largest is "flat":
+#: its rotations get mirrored starts in :func:`best_rotations`.
+FLAT_RATIO = 0.3
+
+
+def best_rotations(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, axes: np.ndarray | None = None,
+                   flat: np.ndarray | None = None, *, use_polar: bool = True, n_newton: int = 2) -> np.ndarray:
+    """Multi-start minimisation of the per-(stick, frame) rotation energy.
+
+    The energy of a 2x3 rotation has several local minima when the stick's
+    shape is nearly planar or collinear (the depth-reversal ambiguity of
+    orthographic projection), and EM's one-step-at-a-time updates can sit in the
+    wrong one for hundreds of iterations. For a planar shape with unit normal n
+    the projections of ``R`` and of its mirror image ``R (I - 2 n n^T)`` coincide
+    (both have orthonormal rows), so the two are exactly as good until a joint
+    off that plane tells them apart. Starts: the current R; the paper's SVD
+    solution (polar factor of C_ab) when ``use_polar``; and, for the sticks
+    marked in ``flat`` (boolean over R's first axis), the current R mirrored
+    through the planes normal to the two minor principal axes of the stick's
+    shape (``axes``, rows in increasing order of spread, shape (S, 1, 3, 3)).
+    Each start is polished by ``n_newton`` Newton steps; the lowest energy wins
+    (never above the current one).
+    """
+    D = R.shape[-2]
+    best = R
+    for _ in range(n_newton):
+        best = newton_step(best, C_ab, C_bb)
+    best_e = _rotation_energy(best, C_ab, C_bb)
+    candidates = []
+    if use_polar:
+        U, _, Vt = np.linalg.svd(C_ab, full_matrices=False)
+        polar = U @ Vt
+        if D == 3:
+            polar = polar * np.sign(np.linalg.det(polar))[..., None, None]
+        candidates.append((slice(None), polar))
+    if flat is not None and axes is not None and np.any(flat):
+        idx = np.flatnonzero(flat)
+        for k in range(2):
+            n = axes[idx, ..., k, :]
+            mirror = np.eye(3) - 2.0 * n[..., :, None] * n[..., None, :]
+            candidates.append((idx, R[idx] @ mirror))
+    for sel, X in candidates:
+        Ca, Cb = C_ab[sel], C_bb[sel]
+        for _ in range(n_newton):
+            X = newton_step(X, Ca, Cb)
+        e = _rotation_energy(X, Ca, Cb)
+        take = e < best_e[sel]
+        if isinstance(sel, slice):
+            best = np.where(take[..., None, None], X, best)
+            best_e = np.where(take, e, best_e)
+        else:
+            best = best.copy()
+            best_e = best_e.copy()
+            best[sel] = np.where(take[..., None, None], X, best[sel])
+            best_e[sel] = np.where(take, e, best_e[sel])
+    return best
+
+
+def _principal_axes(st: StickState) -> tuple[np.ndarray, np.ndarray]:
+    """Principal axes of every stick's points and whether the stick is flat.
+
+    Returns
+    -------
+    axes : ndarray, shape (S, 1, 3, 3)
+        Rows in increasing order of spread.
+    flat : ndarray of bool, shape (S,)
+        Smallest spread below ``FLAT_RATIO`` times the largest.
+    """
+    S = st.n_sticks
+    X, lab = st.local, st.labels
+    cnt = np.maximum(np.bincount(lab, minlength=S), 1).astype(float)
+    mean = np.stack([np.bincount(lab, weights=X[:, k], minlength=S) for k in range(3)], -1) / cnt[:, None]
+    Xc = X - mean[lab]
+    cov = np.zeros((S, 3, 3))
+    np.add.at(cov, lab, Xc[:, :, None] * Xc[:, None, :])
+    lam, V = np.linalg.eigh(cov)
+    lam = np.maximum(lam, 0.0)
+    flat = np.sqrt(lam[:, 0]) < FLAT_RATIO * np.sqrt(np.maximum(lam[:, 2], 1e-300))
+    return np.swapaxes(V, -1, -2)[:, None], flat
+
+
+def update_motions(st: StickState, obs: Observations, *, n_procrustes: int = 1, newton: bool = False,
+                   global_search: bool = False, sticks: np.ndarray | None = None, use_polar: bool = True) -> None:
+    """Rotations and translations of every stick in every frame, jointly.
+
+    The weighted problem ``min_{R,t} sum_n w_n |a_n - R b_n - t|^2`` over the
+    stick's points (w = tau_w, visible only) and endpoints (w = tau_m) reduces,
+    with ``t = a_bar - R b_bar``, to ``min_R -2 tr(R C_ab^T) + tr(R C_bb R^T)``,
+    improved by :func:`procrustes_step` for all (stick, frame) pairs at once and
+    then by a :func:`newton_step` (quadratic convergence where the
+    Green-Gower iteration crawls: sticks whose points are nearly collinear); each
+    new rotation is kept only where it lowers that energy, so the update is
+    monotone. ``global_search`` runs :func:`best_rotations` instead of the Newton
+    step, on the sticks in ``sticks`` (indices) or on all.
+    """
+    a_bar, b_bar, C_ab, C_bb = _motion_statistics(st, obs)
+    q0 = st._quat if st._quat is not None and st._quat_of is st.rot else rot_to_quat(complete_rotation(st.rot))
+    R_new, q_new = procrustes_step(st.rot, C_ab, C_bb, n_outer=n_procrustes, quat=q0)
+    old = _rotation_energy(st.rot, C_ab, C_bb)
+    new = _rotation_energy(R_new, C_ab, C_bb)
+    keep = new <= old
+    R = np.where(keep[..., None, None], R_new, st.rot)
+    q = np.where(keep[..., None], q_new, q0)
+    if global_search:
+        axes, flat = _principal_axes(st)
+        if sticks is None:
+            R = best_rotations(R, C_ab, C_bb, axes, flat, use_polar=use_polar)
+            q = rot_to_quat(complete_rotation(R))
+        else:
+            R, q = R.copy(), q.copy()
+            R[sticks] = best_rotations(R[sticks], C_ab[sticks], C_bb[sticks], axes[sticks], flat[sticks],
+                                       use_polar=use_polar)
+            q[sticks] = rot_to_quat(complete_rotation(R[sticks]))
+    elif newton:
+        R_n = newton_step(R, C_ab, C_bb)
+        better = np.any(R_n != R, axis=(-1, -2))
+        if better.any():
+            R = R_n
+            q = np.where(better[..., None], rot_to_quat(complete_rotation(R_n)), q)
+    st.rot = R
+    st._quat = q
+    st._quat_of = R
+    st.trans = a_bar - (R @ b_bar[..., None])[..., 0]
+
+
+def update_local(st: StickState, obs: Observations, priors: Priors) -> None:
+    """Local coordinates of the points: ``(tau_w sum_f o R^T R + tau_p I) l = tau_w sum_f o R^T (w - t)``.
+
+    (The paper's form divided by tau_w, with missing frames dropped from both sums.)
+    """
+    S, F, D = st.trans.shape
+    des = st.design(obs)
+    RtR = (np.swapaxes(st.rot, -1, -2) @ st.rot).reshape(S * F, 9)
+    H = st.tau_w * np.asarray(des.vis_T @ RtR).reshape(-1, 3, 3) + priors.tau_p * np.eye(3)
+    Rt_t = (st.trans[..., None, :] @ st.rot).reshape(S * F, 3)
+    rhs = st.tau_w * (des.obs_w_T @ st.rot.reshape(S * F * D, 3) - des.vis_T @ Rt_t)
+    st.local = np.linalg.solve(H, rhs[..., None])[..., 0]
+
+
+def update_ends(st: StickState, priors: Priors) -> None:
+    """Local coordinates of the endpoints: ``(tau_m sum_f R^T R + tau_p I) k = tau_m sum_f R^T (mu(e) - t)``."""
+    s = st.stick_of_end
+    S, F, D = st.trans.shape
+    Rf = st.rot.reshape(S, F * D, 3)
+    RtR = np.swapaxes(Rf, 1, 2) @ Rf  # (S, 3, 3)
+    H = st.tau_m * RtR[s] + priors.tau_p * np.eye(3)
+    diff = (st.mu_e - st.trans[s]).reshape(-1, 1, F * D)
+    rhs = st.tau_m * (diff @ Rf[s])[:, 0, :]
+    st.ends = np.linalg.solve(H, rhs[..., None])[..., 0]
+
+
+def update_precisions(st: StickState, obs: Observations, priors: Priors) -> None:
+    """Maximum-likelihood tau_w, tau_m and tau_t (capped at ``priors.max_precision``).
+
+    ``1/tau_w = sum o |w - R l - t|^2 / (D N_obs)``;
+    ``1/tau_m = sum_{i,f} (|mu(e) - R k - t|^2 + D/tau(e)) / (D E S F)``;
+    ``1/tau_t = sum_{j, f>1} (|mu(v_f) - mu(v_f-1)|^2 + D/tau(v_f) + D/tau(v_f-1)) / (D J (F-1))``.
+    """
+    D = st.n_dims
+    F = st.n_frames
+    cap = priors.max_precision
+    des = st.design(obs)
+    ss = des.residual_sq(st.rot, st.trans, st.local).sum()
+    st.tau_w = float(min(D * des.n.sum() / max(ss, 1e-300), cap))
+    eres = st.mu_e - st.end_predictions()
+    ss = np.sum(eres * eres) + F * D * np.sum(1.0 / st.tau_e)
+    st.tau_m = float(min(D * st.mu_e.shape[0] * F / max(ss, 1e-300), cap, priors.max_tau_m_ratio * st.tau_w))
+    if F > 1:
+        dmu = np.diff(st.mu_v, axis=1)
+        inv = 1.0 / st.tau_v
+        ss = np.sum(dmu * dmu) + D * np.sum(inv[:, 1:] + inv[:, :-1])
+        st.tau_t = float(min(D * st.n_vertices * (F - 1) / max(ss, 1e-300), cap))
+
+
+def em_sweep(st: StickState, obs: Observations, priors: Priors, *, precisions: bool = True,
+             local: bool = True, n_procrustes: int = 1, global_rotations: bool = False) -> None:
+    """One EM iteration: E-step (endpoints, vertices, phi) then M-step (motions, L, K, precisions).
+
+    Parameters
+    ----------
+    precisions : bool
+        Re-estimate tau_w, tau_m, tau_t (off when scoring a block of a larger model
+        or when imputing new frames with a trained model).
+    local : bool
+        Re-estimate L and K (off when imputing).
+    global_rotations : bool
+        Use the multi-start rotation search (:func:`best_rotations`) in this sweep.
+    """
+    update_endpoints(st)
+    update_vertices(st)
+    update_phi(st, priors)
+    update_motions(st, obs, n_procrustes=n_procrustes, global_search=global_rotations)
+    if local:
+        update_local(st, obs, priors)
+        update_ends(st, priors)
+    if precisions:
+        update_precisions(st, obs, priors)
