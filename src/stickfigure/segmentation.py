@@ -1,0 +1,635 @@
+"""Shared trajectory clustering: which points move together as one rigid part.
+
+* :func:`affinity_propagation_segments` — the initial clustering of Ross et al.
+  (Affinity Propagation on a subspace affinity), with the number of parts
+  estimated; em and mi-tree start from it.
+* :func:`spectral_segments` — spectral clustering of a precomputed affinity, the
+  number of segments from the eigengap of the normalised Laplacian.
+* :func:`refine_segments` — re-assign every trajectory to the rigid part whose
+  affine subspace explains it best (K-subspaces with a per-part noise level).
+* :func:`estimate_n_segments`, :func:`segment_misfit` — model selection helpers.
+
+Why the default affinity is :func:`stickfigure.geometry.rigid_affinity` and not
+the plain local subspace affinity: see ``docs/geometry.md`` (on random figures
+with 5-9 points per stick the angular neighbourhoods of the LSA straddle
+neighbouring parts half of the time, and ARI stays near 0.6).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from scipy.sparse.csgraph import laplacian
+
+from . import geometry
+from ._validation import as_float_array, check_labels, check_random_state
+
+__all__ = [
+    "affinity_propagation_segments",
+    "spectral_segments",
+    "estimate_n_segments",
+    "refine_segments",
+    "segment_misfit",
+    "partition_bic",
+]
+
+
+def _check_affinity(affinity: Any) -> np.ndarray:
+    A = as_float_array(affinity, "affinity", ndim=2, shape_text="(P, P)", allow_nan=False)
+    if A.shape[0] != A.shape[1]:
+        raise ValueError(f"affinity must be square (P, P), got {A.shape}")
+    if A.shape[0] < 1:
+        raise ValueError("affinity is empty")
+    if (A < 0).any():
+        raise ValueError("affinity must be non-negative")
+    return 0.5 * (A + A.T)
+
+
+def _check_count(n: Any, name: str, P: int) -> int:
+    try:
+        k = int(n)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name} must be a positive integer, got {n!r}") from None
+    if k != n or k < 1:
+        raise ValueError(f"{name} must be a positive integer, got {n!r}")
+    if k > P:
+        raise ValueError(f"{name} ({k}) cannot exceed the number of points ({P})")
+    return k
+
+
+def estimate_n_segments(affinity: Any, *, max_segments: int = 12) -> int:
+    """Number of clusters from the largest eigengap of the normalised Laplacian.
+
+    For an affinity with k well-separated blocks the normalised Laplacian has k
+    eigenvalues near 0 and the (k+1)-th clearly above them (von Luxburg 2007).
+
+    Parameters
+    ----------
+    affinity : array_like, shape (P, P)
+    max_segments : int
+
+    Returns
+    -------
+    int
+    """
+    A = _check_affinity(affinity)
+    P = A.shape[0]
+    if P < 3:
+        return 1
+    kmax = min(_check_count(max_segments, "max_segments", 10**9), P - 1)
+    L = laplacian(A + 1e-9, normed=True)
+    w = np.linalg.eigvalsh(L)[: kmax + 1]
+    return int(np.argmax(np.diff(w)) + 1)
+
+
+def spectral_segments(
+    affinity: Any,
+    n_segments: int | None = None,
+    *,
+    max_segments: int = 12,
+    random_state: Any = None,
+) -> np.ndarray:
+    """Spectral clustering of a precomputed affinity (scikit-learn).
+
+    Parameters
+    ----------
+    affinity : array_like, shape (P, P)
+        Non-negative, symmetric (it is symmetrised).
+    n_segments : int, optional
+        Number of clusters; estimated by :func:`estimate_n_segments` when omitted.
+    max_segments : int
+        Upper bound for the estimate.
+    random_state : None, int or Generator
+
+    Returns
+    -------
+    labels : ndarray of int, shape (P,)
+        Cluster of each point, numbered 0..k-1 by first appearance.
+    """
+    from sklearn.cluster import SpectralClustering
+
+    A = _check_affinity(affinity)
+    P = A.shape[0]
+    k = estimate_n_segments(A, max_segments=max_segments) if n_segments is None else _check_count(
+        n_segments, "n_segments", P)
+    if k == 1:
+        return np.zeros(P, np.int64)
+    if k == P:
+        return np.arange(P)
+    rng = check_random_state(random_state)
+    sc = SpectralClustering(k, affinity="precomputed", random_state=int(rng.integers(2**31 - 1)),
+                            assign_labels="cluster_qr")
+    return _renumber(sc.fit_predict(A + 1e-9))
+
+
+def _renumber(labels: np.ndarray) -> np.ndarray:
+    """Relabel clusters 0..k-1 in order of first appearance; keep -1."""
+    labels = np.asarray(labels, dtype=np.int64)
+    out = -np.ones_like(labels)
+    ok = labels >= 0
+    _, first, inv = np.unique(labels[ok], return_index=True, return_inverse=True)
+    order = np.argsort(np.argsort(first))
+    out[ok] = order[inv]
+    return out
+
+
+def _jlinkage(inliers: np.ndarray) -> np.ndarray:
+    """J-linkage (Toldo & Fusiello 2008): agglomerate points by the Jaccard distance of
+    their hypothesis sets until no two clusters share a hypothesis. inliers (H, P) -> labels (P,)."""
+    pref = inliers.T.copy()  # (clusters, H): a cluster's set is the intersection of its members'
+    P = pref.shape[0]
+    alive = np.ones(P, bool)
+    lab = np.arange(P)
+    pf = pref.astype(float)
+    inter = pf @ pf.T
+    cnt = pf.sum(axis=1)
+    union = cnt[:, None] + cnt[None, :] - inter
+    D = np.where(union > 0, 1.0 - inter / np.maximum(union, 1.0), 1.0)
+    np.fill_diagonal(D, np.inf)
+    for _ in range(P - 1):  # merges, not frames
+        Dm = np.where(alive[:, None] & alive[None, :], D, np.inf)
+        i, j = np.unravel_index(np.argmin(Dm), Dm.shape)
+        if Dm[i, j] >= 1.0 - 1e-12:
+            break
+        pref[i] &= pref[j]
+        alive[j] = False
+        lab[lab == j] = i
+        pi = pref[i].astype(float)
+        it = pref.astype(float) @ pi
+        un = pref.sum(axis=1) + pi.sum() - it
+        d = np.where(un > 0, 1.0 - it / np.maximum(un, 1.0), 1.0)
+        d[i] = np.inf
+        D[i], D[:, i] = d, d
+    return _renumber(lab)
+
+
+# ---------------------------------------------------------------- refinement
+def _affine_fit_residuals(X: np.ndarray, idx: np.ndarray, rank: int) -> np.ndarray:
+    """Squared residual (P,) of every column of X to the affine rank-r fit of columns ``idx``."""
+    mu = X[:, idx].mean(axis=1, keepdims=True)
+    Y = X - mu
+    r = min(rank, idx.size - 1)
+    if r <= 0:
+        return np.sum(Y * Y, axis=0)
+    U, _, _ = np.linalg.svd(Y[:, idx], full_matrices=False)
+    B = U[:, :r]
+    return np.maximum(np.sum(Y * Y, axis=0) - np.sum((B.T @ Y) ** 2, axis=0), 0.0)
+
+
+def _subspace_residuals(X: np.ndarray, labels: np.ndarray, k: int, rank: int, loo_max: int = 40
+                        ) -> np.ndarray:
+    """Squared residual (k, P) of every trajectory (column of X) to each cluster's affine rank-r fit.
+
+    A member's residual is taken leave-one-out (the fit without it) in clusters
+    of at most ``loo_max`` points: one wrong member of a small cluster can take
+    over a principal direction, fitting itself and pushing the true members out.
+    """
+    P = X.shape[1]
+    R = np.full((k, P), np.inf)
+    for c in range(k):  # clusters, not frames
+        idx = np.flatnonzero(labels == c)
+        if idx.size == 0:
+            continue
+        R[c] = _affine_fit_residuals(X, idx, rank)
+        if 2 <= idx.size <= loo_max:
+            for j, p in enumerate(idx):  # leave-one-out for the members of a small cluster
+                R[c, p] = _affine_fit_residuals(X[:, [p, *np.delete(idx, j)]], np.arange(1, idx.size), rank)[0]
+    return R
+
+
+def refine_segments(
+    xy: Any,
+    labels: Any,
+    *,
+    rank: int = 3,
+    n_iter: int = 20,
+    min_size: int | None = None,
+    sigma: float | None = None,
+) -> np.ndarray:
+    """Re-assign trajectories to the rigid part that explains them best (K-subspaces).
+
+    Alternates (1) fitting each cluster's affine rank-``rank`` subspace (mean +
+    principal directions of its trajectories) and (2) moving every trajectory to
+    the cluster of highest Gaussian likelihood with a per-cluster noise level
+    ``s_c^2`` (the members' mean squared residual per coordinate):
+    ``cost = r^2 / (2 s_c^2) + (F*D / 2) log s_c^2``. The per-cluster level keeps a
+    large part seen under perspective (larger affine misfit) from stealing
+    points of a small, accurately tracked one. Clusters never shrink below
+    ``min_size`` (default ``rank + 1``, the fewest points that define a part);
+    stops when no label changes.
+
+    Parameters
+    ----------
+    xy : array_like, shape (P, F, D)
+        Missing entries are completed by low-rank factorisation first.
+    labels : array_like of int, shape (P,)
+        Initial clusters 0..k-1 (-1 entries are assigned too).
+    rank : int
+    n_iter : int
+    min_size : int, optional
+    sigma : float, optional
+        A common noise level for every cluster (e.g. :func:`geometry.noise_level`
+        when parts fit to the noise): the assignment is then by least residual,
+        and a cluster holding two parts cannot attract points by its inflated
+        level.
+
+    Returns
+    -------
+    ndarray of int, shape (P,)
+    """
+    xy = geometry._check_xy(xy)
+    P, F, D = xy.shape
+    labels = check_labels(labels, P, "labels").copy()
+    rank = geometry._check_rank(rank)
+    min_size = rank + 1 if min_size is None else int(min_size)
+    if labels.max(initial=-1) < 0:
+        raise ValueError("labels has no cluster to refine (all -1)")
+    xy = geometry._complete_for_affinity(xy)
+    X = geometry.measurement_matrix(xy)
+    FD = X.shape[0]
+    k = int(labels.max()) + 1
+    for _ in range(n_iter):
+        R = _subspace_residuals(X, labels, k, rank)
+        sizes = np.bincount(labels[labels >= 0], minlength=k)
+        var = np.empty(k)
+        for c in range(k):
+            m = labels == c
+            dof = max(FD - rank, 1)
+            # robust: the median member residual (a wrong member must not inflate the level)
+            var[c] = np.median(R[c, m]) / dof if m.sum() > rank + 1 else np.nan
+        fallback = np.nanmedian(var) if np.isfinite(var).any() else 1.0
+        var = np.where(np.isfinite(var) & (var > 0), var, max(fallback, 1e-300))
+        if sigma is not None:
+            var = np.full(k, max(float(sigma) ** 2, 1e-300))
+        cost = R / (2.0 * var[:, None]) + 0.5 * FD * np.log(var)[:, None]
+        cost[sizes == 0] = np.inf
+        new = np.argmin(cost, axis=0)
+        # keep clusters alive: a point may not leave a cluster already at min_size
+        for c in range(k):
+            leaving = np.flatnonzero((labels == c) & (new != c))
+            keep_n = int(np.sum(new == c))
+            if keep_n < min_size and sizes[c] >= min_size:
+                # the members that fit c best stay
+                order = leaving[np.argsort(cost[c, leaving] - cost[new[leaving], leaving])]
+                new[order[: min_size - keep_n]] = c
+        if np.array_equal(new, labels):
+            break
+        labels = new
+    return _renumber(labels)
+
+
+def segment_misfit(xy: Any, labels: Any, *, rank: int = 3, sigma: float | None = None) -> np.ndarray:
+    """How far each cluster is from one rigid part, in units of the noise, shape (k,).
+
+    ``RSS_c / (sigma^2 (n_c - rank - 1)(F*D - rank))``: the cluster's residual
+    sum of squares under its own affine rank-``rank`` fit over its degrees of
+    freedom. About 1 for a rigid part under Gaussian noise of std ``sigma``
+    (``sigma`` from :func:`geometry.noise_level` when omitted); a cluster that
+    holds two parts moving differently scores several times higher (on random
+    figures true parts score <= 1.4 and merged neighbours >= 3.3). NaN for
+    clusters of at most ``rank + 1`` points (they fit anything).
+    """
+    xy = geometry._check_xy(xy)
+    P, F, D = xy.shape
+    labels = check_labels(labels, P, "labels")
+    rank = geometry._check_rank(rank)
+    xy = geometry._complete_for_affinity(xy)
+    if sigma is None:
+        sigma = geometry.noise_level(xy, rank=rank)
+    X = geometry.measurement_matrix(xy)
+    return _misfit(X, labels, rank, float(sigma) ** 2)
+
+
+def _misfit(X: np.ndarray, labels: np.ndarray, rank: int, sig2: float) -> np.ndarray:
+    FD = X.shape[0]
+    k = int(labels.max(initial=-1)) + 1
+    out = np.full(k, np.nan)
+    for c in range(k):
+        idx = np.flatnonzero(labels == c)
+        if idx.size > rank + 1:
+            rss = float(np.sum(_affine_fit_residuals(X[:, idx], np.arange(idx.size), rank)))
+            out[c] = rss / (max(sig2, 1e-300) * (idx.size - rank - 1) * max(FD - rank, 1))
+    return out
+
+
+# ------------------------------------------------------- affinity propagation
+def _affinity_propagation(S: np.ndarray, preference: float, seed: int) -> np.ndarray:
+    import warnings
+
+    from sklearn.cluster import AffinityPropagation
+    from sklearn.exceptions import ConvergenceWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        ap = AffinityPropagation(affinity="precomputed", preference=preference, damping=0.9,
+                                 max_iter=1000, convergence_iter=50, random_state=seed).fit(S)
+    labels = np.asarray(ap.labels_, dtype=np.int64)
+    if (labels < 0).any() or len(ap.cluster_centers_indices_) == 0:
+        return -np.ones(S.shape[0], np.int64)
+    return labels
+
+
+def _ap_with_count(S: np.ndarray, k: int, seed: int, n_bisect: int = 30) -> tuple[np.ndarray, float]:
+    """Affinity Propagation with the preference bisected until it gives k clusters.
+
+    The number of exemplars grows with the preference; bisection on the
+    preference between min(S) - spread and max(S) finds one giving k (or the
+    closest count found).
+    """
+    off = S[~np.eye(S.shape[0], dtype=bool)]
+    lo = float(off.min()) - (float(off.max()) - float(off.min())) - 1e-3
+    hi = float(off.max())
+    best: tuple[int, np.ndarray, float] | None = None
+    for _ in range(n_bisect):
+        pref = 0.5 * (lo + hi)
+        labels = _affinity_propagation(S, pref, seed)
+        n = int(labels.max()) + 1 if labels.max() >= 0 else 0
+        if n > 0 and (best is None or abs(n - k) < abs(best[0] - k)):
+            best = (n, labels, pref)
+        if n == k:
+            break
+        if n < k:
+            lo = pref
+        else:
+            hi = pref
+    if best is None:
+        return -np.ones(S.shape[0], np.int64), float("nan")
+    return best[1], best[2]
+
+
+def affinity_propagation_segments(
+    xy: Any,
+    *,
+    affinity: Any = None,
+    preference: float | None = None,
+    n_segments: int | None = None,
+    max_segments: int = 12,
+    rank: int = 3,
+    refine: bool = True,
+    random_state: Any = None,
+    return_info: bool = False,
+) -> np.ndarray | tuple[np.ndarray, dict[str, Any]]:
+    """The initial clustering of Ross et al.: Affinity Propagation on a rigid-subspace affinity.
+
+    1. Affinity: :func:`stickfigure.geometry.rigid_affinity` unless given.
+    2. Number of parts ``k``: ``n_segments`` if given; else the eigengap of the
+       affinity (:func:`estimate_n_segments`), then checked by rigidity when the
+       scene's rigid parts fit to the noise level (synthetic and motion-capture
+       data): while a cluster is not rigid (:func:`segment_misfit` > 3) ``k``
+       grows, and two clusters whose union is rigid are merged.
+    3. Affinity Propagation (scikit-learn) with the preference bisected so that
+       it returns ``k`` exemplars; an explicit ``preference`` is used as given
+       (then ``k`` is whatever AP returns). If no preference gives exactly ``k``
+       clusters, spectral clustering with ``k`` is used instead (recorded in info).
+    4. ``refine``: :func:`refine_segments` (K-subspaces) polishes the borders.
+
+    Parameters
+    ----------
+    xy : array_like, shape (P, F, D)
+        Trajectories, NaN where missing.
+    affinity : array_like, shape (P, P), optional
+        Precomputed similarities (e.g. :func:`geometry.local_subspace_affinity`).
+    preference : float, optional
+        AP preference; bypasses the count estimate.
+    n_segments : int, optional
+        Number of parts if known.
+    max_segments : int
+        Upper bound of the estimated count.
+    rank : int
+        Affine rank of one part (3 for 3D motion, 2 for planar).
+    refine : bool
+        Polish with :func:`refine_segments`.
+    random_state : None, int or Generator
+    return_info : bool
+        Also return a dict: ``n_segments``, ``preference``, ``estimated`` count, ``method``.
+
+    Returns
+    -------
+    labels : ndarray of int, shape (P,)
+    info : dict, optional
+    """
+    xy = geometry._check_xy(xy)
+    P = xy.shape[0]
+    rank = geometry._check_rank(rank)
+    rng = check_random_state(random_state)
+    seed = int(rng.integers(2**31 - 1))
+    if P < rank + 2:
+        labels = np.zeros(P, np.int64)
+        info = {"n_segments": 1, "preference": None, "estimated": None, "method": "trivial"}
+        return (labels, info) if return_info else labels
+    sigma = None
+    inliers = None
+    if affinity is None:
+        A, ainfo = geometry.rigid_affinity(xy, rank=rank, random_state=seed, return_info=True)
+        sigma, inliers = ainfo["sigma"], ainfo["inliers"]
+    else:
+        A = _check_affinity(affinity)
+        if A.shape != (P, P):
+            raise ValueError(f"affinity must have shape ({P}, {P}) to match xy, got {A.shape}")
+    info: dict[str, Any] = {"preference": preference, "method": "affinity-propagation"}
+    if preference is not None:
+        labels = _renumber(_affinity_propagation(A, float(preference), seed))
+        if labels.max() < 0:
+            raise ValueError(f"Affinity Propagation did not converge with preference={preference!r}")
+        k = int(labels.max()) + 1
+        info["estimated"] = None
+    else:
+        if n_segments is not None:
+            k = _check_count(n_segments, "n_segments", P)
+            info["estimated"] = None
+        else:
+            k = estimate_n_segments(A, max_segments=max_segments)
+            info["estimated"] = k
+        ap_labels, pref = _ap_with_count(A, k, seed)
+        info["preference"] = pref
+        starts = {"spectral": spectral_segments(A, k, random_state=seed)}
+        if ap_labels.max() + 1 == k:
+            starts["affinity-propagation"] = _renumber(ap_labels)
+        if inliers is not None and n_segments is None and P <= 400:
+            starts["j-linkage"] = _jlinkage(inliers)
+        # Every start is refined (and, with an estimated count, split/merged by
+        # rigidity); the partition explaining the data best wins: fewest points in
+        # non-rigid parts, then the lowest BIC (the lowest residual for a fixed count).
+        xyc = geometry._complete_for_affinity(xy)
+        X = geometry.measurement_matrix(xyc)
+        sig2 = (sigma if sigma is not None else geometry.noise_level(xyc, rank=rank)) ** 2
+        results = []
+        for name, lab in starts.items():
+            sub: dict[str, Any] = {}
+            if refine:
+                lab = refine_segments(xyc, lab, rank=rank)
+            if n_segments is None:
+                lab = _rigidity_model_selection(xyc, A, lab, rank, float(np.sqrt(sig2)), max_segments, seed,
+                                                refine, sub, inliers=inliers)
+            m = _misfit(X, lab, rank, sig2)
+            sizes = np.bincount(lab, minlength=m.size)
+            excess = float(np.sum(np.where(np.isfinite(m), np.maximum(m - 2.0, 0.0), 0.0) * sizes))
+            if sub.get("rigidity_check", "applied") != "applied":
+                excess = 0.0  # misfit regime: rigidity is not measurable against the local noise
+            results.append((excess, _bic(X, lab, rank, sig2), name, lab, sub))
+        results.sort(key=lambda r: (r[0], r[1]))
+        _, _, name, labels, sub = results[0]
+        info["method"] = name
+        info.update(sub)
+        info["n_segments"] = int(labels.max()) + 1
+        return (labels, info) if return_info else labels
+    if refine:
+        labels = refine_segments(xy, labels, rank=rank)
+    info["n_segments"] = int(labels.max()) + 1
+    return (labels, info) if return_info else labels
+
+
+def partition_bic(xy: Any, labels: Any, *, rank: int = 3, sigma: float) -> float:
+    """Bayesian information criterion of a partition into rigid parts (lower is better).
+
+    Each part is an affine rank-``rank`` body: ``x_pf = A_cf s_p + t_cf``. With
+    Gaussian noise of known std ``sigma`` (from :func:`geometry.noise_level`)::
+
+        BIC = RSS / sigma^2 + n_params * log(N),
+        n_params = k * F*D * (rank + 1) + P * rank,   N = P * F * D
+
+    where RSS sums every trajectory's squared residual to its part's
+    least-squares fit. A merged pair of parts pays in RSS, a needless split pays
+    F*D*(rank + 1) log N for a residual gain of only about F*D*(rank + 1) sigma^2.
+    Points labelled -1 are ignored.
+    """
+    xy = geometry._check_xy(xy)
+    P, F, D = xy.shape
+    labels = check_labels(labels, P, "labels")
+    xy = geometry._complete_for_affinity(xy)
+    X = geometry.measurement_matrix(xy)
+    return _bic(X, labels, rank, sigma ** 2)
+
+
+def _bic(X: np.ndarray, labels: np.ndarray, rank: int, sig2: float) -> float:
+    FD, P = X.shape
+    k = int(labels.max(initial=-1)) + 1
+    rss = 0.0
+    for c in range(k):
+        idx = np.flatnonzero(labels == c)
+        if idx.size:
+            rss += float(np.sum(_affine_fit_residuals(X[:, idx], np.arange(idx.size), rank)))
+    n_params = k * FD * (rank + 1) + int((labels >= 0).sum()) * rank
+    return rss / max(sig2, 1e-300) + n_params * np.log(max(FD * P, 2))
+
+
+def _rigidity_model_selection(xy: np.ndarray, A: np.ndarray, labels: np.ndarray, rank: int,
+                              sigma: float | None, max_segments: int, seed: int, refine: bool,
+                              info: dict[str, Any], inliers: np.ndarray | None = None,
+                              limit: float = 2.0, regime: float = 1.5) -> np.ndarray:
+    """Split clusters that are not rigid, merge clusters whose union is (model selection).
+
+    Applies only when the best cluster is rigid to the noise level
+    (:func:`segment_misfit` <= ``regime``): then a cluster scoring above
+    ``limit`` holds more than one part. On real footage the affine model's
+    misfit (perspective, non-rigid parts) exceeds the local noise everywhere and
+    the check is skipped. Moves, repeated until none applies:
+
+    * split the least rigid cluster if above ``limit``: candidates are the
+      spectral bisection of its affinity block and its overlaps with the grown
+      rigid hypotheses (``inliers``); each is polished (fragments of fewer than
+      ``rank + 2`` points dissolved into the clusters that explain them best,
+      then :func:`refine_segments`) and the one with the lowest worst misfit is
+      kept if it lowers the worst misfit;
+    * merge the two clusters whose union is most rigid, if it is <= ``limit``.
+    """
+    if sigma is None:
+        sigma = geometry.noise_level(xy, rank=rank)
+    sig2 = float(sigma) ** 2
+    xyc = geometry._complete_for_affinity(xy)
+    X = geometry.measurement_matrix(xyc)
+    small_size = rank + 2
+
+    def worst(m: np.ndarray) -> float:
+        return float(np.max(np.where(np.isfinite(m), m, 0.0), initial=0.0))
+
+    def polish(lab: np.ndarray) -> np.ndarray:
+        lab = _renumber(lab)
+        if refine:
+            lab = refine_segments(xyc, lab, rank=rank)
+        for _ in range(3):
+            k = int(lab.max()) + 1
+            sizes = np.bincount(lab, minlength=k)
+            small = np.flatnonzero(sizes < small_size)
+            if not small.size or small.size == k:
+                break
+            keep = np.setdiff1d(np.arange(k), small)
+            R = _subspace_residuals(X, lab, k, rank, loo_max=0)[keep]
+            pts = np.isin(lab, small)
+            lab = lab.copy()
+            lab[pts] = keep[np.argmin(R[:, pts], axis=0)]
+            lab = _renumber(lab)
+            if refine:
+                lab = refine_segments(xyc, lab, rank=rank)
+        return lab
+
+    labels = polish(labels)
+    mis = _misfit(X, labels, rank, sig2)
+    info["misfit_initial"] = [None if not np.isfinite(m) else round(float(m), 3) for m in mis]
+    # Regime: do rigid parts fit to the local noise? Judged on the grown rigid
+    # hypotheses (independent of the current partition), else on the clusters.
+    level = np.nanmin(mis) if np.isfinite(mis).any() else np.inf
+    if inliers is not None:
+        sets = [np.flatnonzero(r) for r in inliers[:: max(1, inliers.shape[0] // 60)]]
+        hm = [_misfit(X, np.where(np.isin(np.arange(X.shape[1]), st), 0, -1), rank, sig2)[0]
+              for st in sets if st.size > rank + 1]
+        if hm:
+            level = float(np.nanmedian(hm))
+    info["hypothesis_misfit"] = round(float(level), 3) if np.isfinite(level) else None
+    if not level <= regime:
+        info["rigidity_check"] = "skipped (parts do not fit to the noise level)"
+        return labels
+    info["rigidity_check"] = "applied"
+    def excess(lab: np.ndarray) -> float:
+        # points in non-rigid clusters, weighted by how far from rigid they are
+        m = _misfit(X, lab, rank, sig2)
+        sizes = np.bincount(lab, minlength=m.size)
+        return float(np.sum(np.where(np.isfinite(m), np.maximum(m - limit, 0.0), 0.0) * sizes))
+
+    for _ in range(4 * max_segments):
+        k = int(labels.max()) + 1
+        mis = _misfit(X, labels, rank, sig2)
+        w = int(np.argmax(np.where(np.isfinite(mis), mis, -np.inf)))
+        if mis[w] > limit and k < max_segments:
+            idx = np.flatnonzero(labels == w)
+            parts: list[np.ndarray] = [idx[spectral_segments(A[np.ix_(idx, idx)], 2, random_state=seed) == 1]]
+            if inliers is not None:
+                # "add a rigid part": a grown hypothesis that reaches into the worst cluster
+                cnt_in = inliers[:, idx].sum(axis=1)
+                tot = inliers.sum(axis=1)
+                ok = (cnt_in >= 2) & (tot >= small_size) & (tot < inliers.shape[1])
+                order = np.flatnonzero(ok)[np.argsort(-cnt_in[ok], kind="stable")]
+                seen: set[tuple[int, ...]] = set()
+                for h in order:
+                    key = tuple(np.flatnonzero(inliers[h]))
+                    if key not in seen:
+                        seen.add(key)
+                        parts.append(np.array(key))
+                    if len(seen) >= 30:
+                        break
+            cur = excess(labels)
+            best = None
+            for part in parts:
+                trial = labels.copy()
+                trial[part] = k
+                trial = polish(trial)
+                score = excess(trial)
+                if best is None or score < best[0]:
+                    best = (score, trial)
+            if best is not None and best[0] < cur:
+                labels = best[1]
+                continue
+        merge = None
+        for a in range(k):
+            for b in range(a + 1, k):
+                union = np.where((labels == a) | (labels == b), 0, -1)
+                ab = _misfit(X, union, rank, sig2)[0]
+                if np.isfinite(ab) and ab <= limit and (merge is None or ab < merge[0]):
+                    merge = (ab, a, b)
+        if merge is not None:
+            labels = polish(np.where(labels == merge[2], merge[1], labels))
+            continue
+        break
+    info["misfit"] = [None if not np.isfinite(m) else round(float(m), 3) for m in _misfit(X, labels, rank, sig2)]
+    return labels
