@@ -317,7 +317,7 @@ def track_video(
                         similar = ncc >= min_ncc
                         n_ncc_lost += int((good & ~similar).sum())
                         good &= similar
-                    A = _dominant_motion(old[good], nxt[good], 2 * fb_threshold, float(rw * rh))
+                    A = _dominant_motion(old[good], nxt[good], 2 * fb_threshold, (rx, ry, rw, rh))
                     ids, pts, tmpl = ids[good], nxt[good].astype(np.float32), tmpl[good]
                 steps.append(A)
             if ids.size < max_points and (k - last_detect >= redetect_every or ids.size == 0 or is_cut):
@@ -478,50 +478,69 @@ def _template_ncc(img: np.ndarray, p: np.ndarray, tmpl: np.ndarray, r: int, thre
     return ncc
 
 
-def _dominant_motion(src: np.ndarray, dst: np.ndarray, threshold: float, area: float) -> np.ndarray:
+def _cell_medians(src: np.ndarray, dst: np.ndarray, roi: tuple[int, int, int, int],
+                  grid: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """One representative match per occupied cell of a ``grid`` x ``grid`` division of the region.
+
+    Each is the median position and median displacement of the cell's points,
+    so a region counts by its area, not by how many features it has.
+    """
+    rx, ry, rw, rh = roi
+    cx = np.clip(((src[:, 0] - rx) * grid / rw).astype(int), 0, grid - 1)
+    cy = np.clip(((src[:, 1] - ry) * grid / rh).astype(int), 0, grid - 1)
+    cell = cy * grid + cx
+    order = np.argsort(cell, kind="stable")
+    cell, s_, d_ = cell[order], src[order], dst[order] - src[order]
+    starts = np.flatnonzero(np.r_[True, cell[1:] != cell[:-1]])
+    groups = np.split(np.arange(cell.size), starts[1:])
+    rep_src = np.array([np.median(s_[g], axis=0) for g in groups])
+    rep_d = np.array([np.median(d_[g], axis=0) for g in groups])
+    return rep_src, rep_src + rep_d
+
+
+def _dominant_motion(src: np.ndarray, dst: np.ndarray, threshold: float,
+                     roi: tuple[int, int, int, int]) -> np.ndarray:
     """The camera's motion between two frames, as a 3x3 homography (the identity for a still camera).
 
-    A homography is exact for a camera that only turns (pan, tilt, zoom) and for
-    a planar background; RANSAC makes it the motion of the largest consistent
-    set of points (the background), not of the figure moving in front of it.
-    With too few points for a homography, a similarity is fitted; with fewer
-    than 3, the identity.
+    The camera's motion is the one *most of the frame* follows, not most of
+    the features: a figure in front of a still camera can carry more features
+    than the background. So the region is divided into 8 x 8 cells, each
+    occupied cell gives one representative match (median position and
+    displacement of its points), and a homography is fitted to those with
+    RANSAC (a similarity with fewer than 12 cells; the identity with fewer
+    than 3). A homography is exact for a camera that only turns (pan, tilt,
+    zoom) and for a planar background.
 
-    It is taken for the camera's motion only if its inliers spread over at
-    least a quarter of the region (``area``, pixels²; the box holding the
-    middle 90% of them): against a plain background the only features may be
-    on the figure, and removing *its* motion would make it look static. When in
-    doubt the camera is taken to be still, which at worst keeps some
+    It is kept only if it explains the cells clearly better than no motion
+    (median residual at least 0.1 px smaller; chaining per-frame estimates
+    integrates their errors, which for a still camera would make the
+    background drift) and the cells it explains to half a pixel cover at least
+    a quarter of the grid (against a plain background the only features may
+    be on the figure; removing *its* motion would make it look static). When
+    in doubt the camera is taken to be still, which at worst keeps some
     background tracks.
     """
     cv2 = _cv2()
-    H = None
+    src, dst = _cell_medians(src, dst, roi)
     n = len(src)
     thr = max(1.0, float(threshold))
-    inl = None
+    H = None
     if n >= 12:
-        H, inl = cv2.findHomography(src, dst, cv2.RANSAC, thr)
+        H, _ = cv2.findHomography(src, dst, cv2.RANSAC, thr)
     if H is None and n >= 3:
-        M, inl = cv2.estimateAffinePartial2D(src, dst, method=cv2.RANSAC, ransacReprojThreshold=thr)
+        M, _ = cv2.estimateAffinePartial2D(src, dst, method=cv2.RANSAC, ransacReprojThreshold=thr)
         if M is not None:
             H = np.vstack([M, [0.0, 0.0, 1.0]])
     if H is None or not np.all(np.isfinite(H)) or abs(H[2, 2]) < 1e-12:
         return np.eye(3)
-    pts = src[inl.ravel().astype(bool)] if inl is not None else src
-    if len(pts) < 3:
-        return np.eye(3)
-    lo, hi = np.percentile(pts, 5, axis=0), np.percentile(pts, 95, axis=0)
-    if np.prod(hi - lo) < 0.25 * area:
-        return np.eye(3)
     H = H / H[2, 2]
-    # Keep the identity unless H explains the points clearly better: chaining
-    # per-frame estimates integrates their errors, which for a still camera
-    # would make the static background drift.
     hp = np.c_[src, np.ones(n)] @ H.T
     with np.errstate(divide="ignore", invalid="ignore"):
-        err_h = np.median(np.linalg.norm(hp[:, :2] / hp[:, 2:] - dst, axis=1))
-    err_i = np.median(np.linalg.norm(dst - src, axis=1))
-    if not np.isfinite(err_h) or err_i <= err_h + 0.1:
+        res_h = np.linalg.norm(hp[:, :2] / hp[:, 2:] - dst, axis=1)
+    res_i = np.linalg.norm(dst - src, axis=1)
+    if not np.all(np.isfinite(res_h)) or np.median(res_i) <= np.median(res_h) + 0.1:
+        return np.eye(3)
+    if (res_h < 0.5).sum() < 16:  # a quarter of the 64 cells
         return np.eye(3)
     return H
 
@@ -552,8 +571,13 @@ def best_window(
 
     For every window ``[a, b)`` (lengths from ``min_frames`` to ``max_frames``,
     every start), the points observed in at least ``coverage`` of its frames
-    are counted; the window maximising ``n_points * length`` wins (ties: the
-    longer, then the earlier window). ``max_frames`` keeps a long video from
+    are counted; the window maximising ``min(n_points, max_points) * sqrt(length)``
+    wins (ties: the longer, then the earlier window). Points count more than
+    frames: a window twice as long must keep more than 71% of the points to
+    win. A skeleton needs its parts covered by points, while beyond a few dozen
+    frames of motion more frames add little (the papers' examples have 30 to
+    200 frames); with ``n * length`` the walking figure of a test video lost
+    half its limbs to a window four times longer. ``max_frames`` keeps a long video from
     trading points for frames: a few hundred frames are plenty for every
     method, while each extra point adds to the structure that can be learned. Windows never cross a shot cut
     (``meta["shots"]``). If more than ``max_points`` points qualify, those
@@ -598,7 +622,7 @@ def best_window(
     shots = np.asarray(traj.meta.get("shots", [offset]), np.int64) - offset
     shots = np.unique(np.r_[0, shots[(shots > 0) & (shots < F)]])
     shot_id = np.searchsorted(shots, np.arange(F), side="right") - 1
-    best = (-1, 0, 0, 0, 0)  # (score, length, -start, start, n)
+    best = (-1.0, 0, 0, 0, 0)  # (score, length, -start, start, n)
     best_any = best
 
     def scan(lengths: np.ndarray) -> None:
@@ -614,9 +638,10 @@ def best_window(
             for c in range(0, a.size, 256):
                 aa = a[c:c + 256]
                 n[c:c + 256] = ((cs[:, aa + L] - cs[:, aa]) >= need).sum(axis=0)
-            score = n * L
+            # Points beyond max_points would not be kept: they add nothing to a window.
+            score = (n if max_points is None else np.minimum(n, int(max_points))) * np.sqrt(L)
             i = int(np.argmax(score))  # first maximum: the earliest start
-            cand = (int(score[i]), int(L), -int(a[i]), int(a[i]), int(n[i]))
+            cand = (round(float(score[i]), 9), int(L), -int(a[i]), int(a[i]), int(n[i]))
             if cand[:3] > best_any[:3]:
                 best_any = cand
             if n[i] >= min_points and cand[:3] > best[:3]:
