@@ -111,6 +111,22 @@ def test_plot_frames_png(tmp_path, figure, skeleton):
     assert [a.get_title() for a in fig.axes] == ["frame 5", "frame 17", "frame 29"]  # video frame numbers
 
 
+def test_follow_centres_each_frame_at_one_scale(tmp_path, figure, skeleton):
+    far = figure.with_xy(figure.xy + np.linspace(0, 20, figure.n_frames)[None, :, None])  # drifts away
+    fig = plot.plot_frames(far, skeleton, frames=[0, 29], follow=True)
+    spans, centres = [], []
+    for ax, f in zip(fig.axes, (0, 29)):
+        (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+        spans.append((x1 - x0, y1 - y0))
+        lo, hi = np.nanmin(far.xy[:, f], axis=0), np.nanmax(far.xy[:, f], axis=0)
+        assert np.all(lo > (x0, y0)) and np.all(hi < (x1, y1))  # the figure is in view
+        centres.append(((x0 + x1) / 2, (y0 + y1) / 2))
+    np.testing.assert_allclose(spans[0], spans[1])
+    assert centres[1][0] - centres[0][0] == pytest.approx(20, abs=1.0)
+    out = plot.animate(far, skeleton, tmp_path / "follow.gif", follow=True, width=96, dpi=40, max_frames=5)
+    assert Image.open(out).n_frames == 5
+
+
 def test_select_frames():
     assert plot.select_frames(None, 10).tolist() == list(range(10))
     assert plot.select_frames(None, 10, default_count=3).tolist() == [0, 4, 9]

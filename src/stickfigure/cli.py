@@ -21,7 +21,7 @@ __all__ = ["main", "build_parser"]
 
 EPILOG = """\
 examples:
-  stickfigure demo -o demo/                        the whole pipeline on a built-in walker
+  stickfigure demo -o demo/                        the whole pipeline on a built-in figure
   stickfigure methods                              what methods there are
   stickfigure fit walk.c3d --project isometric --method em -o walk.json
   stickfigure render walk.json walk.c3d --project isometric -o walk.gif
@@ -150,18 +150,18 @@ def build_parser() -> argparse.ArgumentParser:
                        help="no progress bars or progress messages")
         return p
 
-    p = cmd("demo", "run the whole pipeline on a built-in walking figure",
-            "Make a synthetic walking figure (11 sticks) with some points hidden, learn its skeleton with the main "
+    p = cmd("demo", "run the whole pipeline on a built-in figure",
+            "Make a synthetic articulated figure (a random tree of 5 sticks, or a walker) with some points hidden, learn its skeleton with the main "
             "method, and write the input, the model, a picture, an animation and a summary with scores against "
             "the known truth.",
-            "  stickfigure demo\n  stickfigure demo -o demo/ --method multibody-sfm\n")
+            "  stickfigure demo\n  stickfigure demo -o demo/ --figure walker --seed 3\n")
     p.add_argument("-o", "--output", default="stickfigure-demo", metavar="DIR",
                    help="output folder (default: stickfigure-demo)")
     p.add_argument("--method", help="method to fit (default: em, or multibody-sfm where em is not installed)")
     p.add_argument("--seed", type=int, default=0, help="seed of the figure and the method (default 0)")
     p.add_argument("--figure", choices=("walker", "random"), default=None,
-                   help="the built-in figure: a walking person or a random 3D tree of sticks (default: see "
-                        "'stickfigure.demo.DEFAULT_FIGURE')")
+                   help="the built-in figure: a random 3D tree of 5 sticks (default) or a walking person "
+                        "(11 sticks; harder)")
     p.add_argument("--n-frames", type=_positive_int, default=None, help="number of frames")
     p.add_argument("--no-occlusion", action="store_true", help="do not hide any observations")
     p.add_argument("--param", action="append", metavar="NAME=VALUE", help="method parameter, repeatable")

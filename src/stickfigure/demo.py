@@ -1,13 +1,14 @@
 """The built-in demonstration: the whole pipeline on a synthetic figure.
 
-:func:`run_demo` makes a figure with known structure, ``"walker"`` (a
-walking person: 11 rigid sticks, points scattered around each bone, seen from
-a three-quarter view) or ``"random"`` (a random 3D tree of 6 sticks seen from
-a random view, as in the Ross et al. experiments), both with 1% noise, hides
+:func:`run_demo` makes a figure with known structure, ``"random"`` (the
+default: a random 3D tree of 5 sticks, 5-9 points each, 60 frames, seen from
+a random view, as in the Ross et al. experiments) or ``"walker"`` (a walking
+person: 11 rigid sticks, 5 points around each bone, 60 frames, seen from a
+three-quarter view), both with 1% noise, hides
 about 12% of its observations with the Ross et al. occluder, learns its
 skeleton with the main method, and writes into one folder:
 
-``walker.npz`` (or ``random.npz``)
+``random.npz`` (or ``walker.npz``)
     the input trajectories, with their ground truth, so every other command
     can be tried on them (``stickfigure render demo/model.json demo/walker.npz -o x.gif``);
 ``model.json`` + ``model.npz``
@@ -15,10 +16,17 @@ skeleton with the main method, and writes into one folder:
 ``frames.png``
     six frames with the skeleton drawn over the points (hidden points as
     hollow markers at their imputed positions, crosses at the truth);
-``walker.gif`` (or ``random.gif``)
+``random.gif`` (or ``walker.gif``)
     the animation;
 ``summary.txt``
     what was found: sticks, joints, and the scores against the known truth.
+
+Why the random figure is the default: it is the setting the main method is
+built and benchmarked for, and ``em`` recovers it in seconds. The walker is
+harder than it looks: pelvis, torso and head barely move relative to each
+other and the gait's small joint angles leave the limbs' motion subspaces
+close, so the shared trajectory clustering finds 6-8 of its 11 sticks (ARI
+0.40-0.68 measured for 5-8 points per bone, 60-90 frames).
 """
 
 from __future__ import annotations
@@ -36,9 +44,9 @@ __all__ = ["run_demo", "default_method", "make_figure", "DEMO_VIEW", "DEFAULT_FI
 DEMO_VIEW = (-60.0, 12.0)
 
 #: The figure ``stickfigure demo`` uses unless told otherwise.
-DEFAULT_FIGURE = "walker"
+DEFAULT_FIGURE = "random"
 
-_FRAMES = {"walker": 60, "random": 120}
+_FRAMES = {"walker": 60, "random": 60}
 
 
 def make_figure(figure: str = DEFAULT_FIGURE, *, n_frames: int | None = None, seed: Any = 0) -> Any:
@@ -51,7 +59,7 @@ def make_figure(figure: str = DEFAULT_FIGURE, *, n_frames: int | None = None, se
     if figure == "walker":
         return sf.synthetic.walker(n_frames=n_frames, points_per_stick=5, noise=0.01, seed=seed, cycles=2.0,
                                    view=DEMO_VIEW)
-    return sf.synthetic.random_figure(n_sticks=6, frames=n_frames, noise=0.01, seed=seed)
+    return sf.synthetic.random_figure(n_sticks=5, frames=n_frames, noise=0.01, seed=seed)
 
 
 def default_method() -> str:
@@ -90,7 +98,7 @@ def run_demo(outdir: str | Path = "stickfigure-demo", *, method: str | None = No
     figure : {"walker", "random"}, optional
         The figure (default :data:`DEFAULT_FIGURE`).
     n_frames : int, optional
-        Number of frames (default 60 for the walker, two gait cycles; 120 for the random figure).
+        Number of frames (default 60: two gait cycles for the walker).
     occlusion : bool
         Hide observations with the sweeping bar plus random drop-outs.
     progress : bool
@@ -141,9 +149,10 @@ def run_demo(outdir: str | Path = "stickfigure-demo", *, method: str | None = No
     pose = _pose(skeleton, traj)
     imputed = pose.points  # predicted positions of the hidden points (where the method has motions)
     paths["picture"] = outdir / "frames.png"
-    plot.plot_frames(traj, skeleton, path=paths["picture"], pose=pose, imputed=imputed, truth=full.xy)
+    plot.plot_frames(traj, skeleton, path=paths["picture"], pose=pose, imputed=imputed, truth=full.xy, follow=True)
     paths["animation"] = outdir / f"{figure}.gif"
-    plot.animate(traj, skeleton, paths["animation"], pose=pose, imputed=imputed, width=400, progress=progress)
+    plot.animate(traj, skeleton, paths["animation"], pose=pose, imputed=imputed, width=400, progress=progress,
+                 follow=True)
 
     scores = _scores(skeleton, traj)
     view = full.meta.get("view") or DEMO_VIEW

@@ -136,7 +136,7 @@ class _Scene:
 
     def __init__(self, traj: Any, skeleton: Skeleton | None = None, *, imputed: Any = None, truth: Any = None,
                  pose: Any = None, view: Any = None, point_size: float = 18.0, line_width: float = 3.0,
-                 joint_size: float = 45.0):
+                 joint_size: float = 45.0, follow: bool = False):
         traj = _as_traj(traj)
         if skeleton is not None and not isinstance(skeleton, Skeleton):
             raise TypeError(f"skeleton must be a stickfigure Skeleton, got {type(skeleton).__name__}")
@@ -186,6 +186,9 @@ class _Scene:
             self.segments = self.joints = None
             self.frame_numbers = int(traj.meta.get("frame_offset", 0)) + np.arange(F)
         self.limits = self._limits()
+        self.centres = None
+        if follow and self.image_size is None:
+            self.centres, self.limits = self._follow()
 
     @staticmethod
     def _check(a: Any, traj: Trajectories, name: str) -> np.ndarray:
@@ -214,6 +217,30 @@ class _Scene:
         pad = 0.06 * max(float((hi - lo).max()), 1e-9)
         return lo[0] - pad, hi[0] + pad, lo[1] - pad, hi[1] + pad
 
+    def _follow(self) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+        """Per-frame centres (F, 2) of the figure, and limits around 0 that fit it in every frame."""
+        X = self.xy if self.imputed is None else np.where(np.isnan(self.xy), self.imputed, self.xy)
+        with np.errstate(invalid="ignore"):
+            lo = np.fmin.reduce(X, axis=0)  # (F, 2), NaN only where a frame shows nothing
+            hi = np.fmax.reduce(X, axis=0)
+        centres = 0.5 * (lo + hi)
+        known = np.isfinite(centres).all(axis=1)
+        if not known.any():
+            return np.zeros((X.shape[1], 2)), self.limits
+        f = np.arange(X.shape[1])
+        centres = np.column_stack([np.interp(f, f[known], centres[known, k]) for k in range(2)])
+        half = np.nanmax(hi[known] - lo[known], axis=0) / 2
+        half = half + 0.12 * max(float(half.max()), 1e-9)
+        return centres, (-half[0], half[0], -half[1], half[1])
+
+    def _set_limits(self, frame: int) -> None:
+        x0, x1, y0, y1 = self.limits
+        if self.centres is not None:
+            cx, cy = self.centres[frame]
+            x0, x1, y0, y1 = x0 + cx, x1 + cx, y0 + cy, y1 + cy
+        self.ax.set_xlim(x0, x1)
+        self.ax.set_ylim(y0, y1)  # y0 > y1 for image data: y points down
+
     # -- artists
     def draw(self, ax: Any, frame: int, *, background: Any = None, title: bool | str = True) -> None:
         from matplotlib.collections import LineCollection
@@ -234,14 +261,14 @@ class _Scene:
         self.joint_art = ax.scatter([], [], s=self.joint_size, zorder=6, facecolors="white",
                                     edgecolors="black", linewidths=1.3)
         self.title = title
-        x0, x1, y0, y1 = self.limits
-        ax.set_xlim(x0, x1)
-        ax.set_ylim(y0, y1)  # y0 > y1 for image data: y points down
+        self._set_limits(frame)
         ax.set_aspect("equal", adjustable="box")
         self.update(frame)
 
     def update(self, frame: int, background: Any = None) -> None:
         f = int(frame)
+        if self.centres is not None:
+            self._set_limits(f)
         if background is not None and self.bg is not None:
             self.bg.set_data(background)
         obs = self.obs[:, f]
@@ -275,7 +302,7 @@ class _Scene:
 def draw_frame(ax: Any, traj: Trajectories | np.ndarray, skeleton: Skeleton | None = None, frame: int = 0, *,
                imputed: Any = None, truth: Any = None, pose: Any = None, background: Any = None,
                view: Any = None, title: bool | str = True, point_size: float = 18.0,
-               line_width: float = 3.0, joint_size: float = 45.0) -> Any:
+               line_width: float = 3.0, joint_size: float = 45.0, follow: bool = False) -> Any:
     """Draw one frame: points coloured by stick, sticks as lines, joints as circles.
 
     Parameters
@@ -302,13 +329,16 @@ def draw_frame(ax: Any, traj: Trajectories | np.ndarray, skeleton: Skeleton | No
     title : bool or str
         ``True`` writes the frame number.
     point_size, line_width, joint_size : float
+    follow : bool
+        Centre the view on the figure in each frame (same scale in every frame),
+        for figures that travel far; image data always show the whole image.
 
     Returns
     -------
     matplotlib Axes
     """
     scene = _Scene(traj, skeleton, imputed=imputed, truth=truth, pose=pose, view=view,
-                   point_size=point_size, line_width=line_width, joint_size=joint_size)
+                   point_size=point_size, line_width=line_width, joint_size=joint_size, follow=follow)
     F = scene.traj.n_frames
     if not -F <= int(frame) < F:
         raise ValueError(f"frame {frame} is out of range: the data have {F} frames")
