@@ -70,6 +70,15 @@ class EMSkeleton(StickEstimator):
         least-squares joint residual); all when None (the paper).
     max_merges : int, optional
         Stop merging after this many merges; all valid merges when None.
+    merge_baseline : bool
+        Compare a candidate with the model run for the same ``n_iter_merge``
+        iterations without the merge (True), or with the model before them (the
+        paper); see docs/em.md.
+    n_polish : int
+        Rounds of joint/rotation re-fitting that start a ``"joint"`` merge (0: none).
+    reuse_scores : bool
+        Keep candidates' scores across stages while their sticks are untouched
+        (the winner is always re-scored before it is taken).
     tol : float
         Early stop of an EM run (relative objective change over ``resample_every``
         iterations with unchanged assignments); 0 runs every iteration.
@@ -79,6 +88,9 @@ class EMSkeleton(StickEstimator):
         Upper bound of the number of initial clusters (default ``min(20, P // 3)``).
     labels_init : array_like of int, shape (P,), optional
         Initial assignments instead of Affinity Propagation.
+    refine_sticks : bool
+        After the first EM run, split sticks that are not rigid and join sticks that
+        move as one, by BIC (an extension: the paper keeps the clustering's count).
     tau_p, alpha0, beta0, max_precision : float
         Priors (normalised units: the data are centred and scaled to unit RMS
         spread): precision of the Gaussian prior on local coordinates; Gamma prior
@@ -97,8 +109,10 @@ class EMSkeleton(StickEstimator):
                  resample: str = "sample", selection: str = "objective", n_ends: int = 3,
                  endpoint_init: str = "axis",
                  merge_init: str = "joint", merge_scope: str = "local", max_candidates: int | None = None,
-                 max_merges: int | None = None, tol: float = 1e-5, min_stick_points: int = 3,
-                 max_sticks: int | None = None, labels_init: Any = None, tau_p: float = 1e-3,
+                 max_merges: int | None = None, merge_baseline: bool = True, n_polish: int = 3,
+                 reuse_scores: bool = True, tol: float = 1e-4, min_stick_points: int = 3,
+                 max_sticks: int | None = None, labels_init: Any = None, refine_sticks: bool = True,
+                 tau_p: float = 1e-3,
                  alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e10, impute_iter: int = 100,
                  random_state: Any = None, progress: bool = False) -> None:
         self.n_iter = n_iter
@@ -112,10 +126,14 @@ class EMSkeleton(StickEstimator):
         self.merge_scope = merge_scope
         self.max_candidates = max_candidates
         self.max_merges = max_merges
+        self.merge_baseline = merge_baseline
+        self.n_polish = n_polish
+        self.reuse_scores = reuse_scores
         self.tol = tol
         self.min_stick_points = min_stick_points
         self.max_sticks = max_sticks
         self.labels_init = labels_init
+        self.refine_sticks = refine_sticks
         self.tau_p = tau_p
         self.alpha0 = alpha0
         self.beta0 = beta0
@@ -131,6 +149,7 @@ class EMSkeleton(StickEstimator):
         if self.n_ends < 2:
             raise ValueError(f"n_ends must be >= 2 (a stick has two ends), got {self.n_ends!r}")
         check_positive(self.resample_every, "resample_every", integer=True, allow_zero=True)
+        check_positive(self.n_polish, "n_polish", integer=True, allow_zero=True)
         check_positive(self.tol, "tol", allow_zero=True)
         for name in ("tau_p", "alpha0", "beta0", "max_precision"):
             check_positive(getattr(self, name), name)
@@ -150,7 +169,10 @@ class EMSkeleton(StickEstimator):
                               merge_init=self.merge_init,
                               max_candidates=None if self.max_candidates is None else int(self.max_candidates),
                               max_merges=None if self.max_merges is None else int(self.max_merges),
-                              tol=float(self.tol))
+                              tol=float(self.tol), refine_sticks=bool(self.refine_sticks),
+                              merge_baseline=bool(self.merge_baseline), n_polish=int(self.n_polish),
+                              reuse_scores=bool(self.reuse_scores),
+                              endpoint_init=self.endpoint_init, n_ends=int(self.n_ends))
         priors = Priors(tau_p=float(self.tau_p), alpha0=float(self.alpha0), beta0=float(self.beta0),
                         max_precision=float(self.max_precision))
         return settings, priors
@@ -168,6 +190,18 @@ class EMSkeleton(StickEstimator):
         return _skeleton(stages, selected, norm, info0, self.selection, traj)
 
     # ----------------------------------------------------------------- impute
+    def impute(self, X: Any) -> np.ndarray:  # type: ignore[override]
+        """Fill the missing entries of ``X`` with the fitted structure (see :meth:`Skeleton.impute`).
+
+        ``Skeleton.impute`` currently reaches the method through the class
+        (``get_method(name).impute(skeleton, traj)``); that call lands here with the
+        skeleton as ``self`` and is passed on to :meth:`impute_skeleton`.
+        """
+        if isinstance(self, Skeleton):
+            traj = X if isinstance(X, Trajectories) else Trajectories(np.asarray(X, float), allow_unobserved=True)
+            return EMSkeleton.impute_skeleton(self, traj)
+        return super().impute(X)
+
     @classmethod
     def impute_skeleton(cls, skeleton: Skeleton, traj: Trajectories) -> np.ndarray:
         """Re-fit motions, endpoints and vertices to ``traj`` with L, K, G and R fixed; predict every point.
@@ -255,6 +289,7 @@ def _skeleton(stages: list[Stage], selected: int, norm: tuple[np.ndarray, float]
         "selection": selection,
         "selected_stage": int(selected),
         "reference_frame": ref,
+        "refinements": stages[0].refinements,
         "stages": [{
             "objective": s.objective, "bic": s.bic, "n_sticks": int(s.labels.max()) + 1,
             "labels": s.labels.tolist(), "vertex_of": s.vertex_of.tolist(), "edges": [list(e) for e in s.edges],

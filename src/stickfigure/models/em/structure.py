@@ -39,6 +39,8 @@ Deviations from the printed algorithm, each a parameter (docs/em.md):
   or changed points; the best candidate is always re-scored before it is taken
   (lazy greedy), so a stale score can only delay a merge, never force one.
   Each stage then scores O(J) new candidates instead of O(J^2).
+* ``refine_sticks`` (default True): after the first EM run, split sticks that are
+  not rigid and join pairs that move as one, both by BIC (``refine.py``).
 * ``tol``: stop an EM run early once the objective changed by less than
   ``tol * |objective|`` over ``resample_every`` iterations and the last resampling
   changed nothing. ``tol=0`` runs the fixed number of iterations.
@@ -73,12 +75,15 @@ class EMSettings:
     merge_init: str = "joint"
     max_candidates: int | None = None
     max_merges: int | None = None
-    tol: float = 1e-5
+    tol: float = 1e-4
     batch_size: int = 2_000_000
     n_procrustes: int = 1
     merge_baseline: bool = True
     n_polish: int = 3
     reuse_scores: bool = True
+    refine_sticks: bool = True
+    endpoint_init: str = "axis"
+    n_ends: int = 3
 
 
 # ----------------------------------------------------------------------------- EM runs
@@ -96,7 +101,7 @@ def run_em(st: StickState, obs: Observations, priors: Priors, settings: EMSettin
     it = 0
     for it in range(1, n_iter + 1):
         em_sweep(st, obs, priors, precisions=precisions, local=local, n_procrustes=settings.n_procrustes,
-                 global_rotations=it == 1)
+                 global_rotations=it % check == 1, use_polar=it == 1)
         if it % check == 0 and it < n_iter:
             if settings.tol > 0:
                 cur = objective(st, obs, priors)
@@ -345,7 +350,7 @@ def merge_vertices(st: StickState, cand: Candidate, priors: Priors, init: str) -
     out.alpha[jn] = priors.alpha0 + 0.5 * D * F * n
     out.beta[jn] = out.alpha[jn] / a
     out.tau_v[jn] = a * n + st.tau_t * chain_degree(F)
-    update_endpoints(out)
+    update_endpoints(out, ends)
     return out
 
 
@@ -633,6 +638,7 @@ class Stage:
     ends_xy: np.ndarray  # (ES, D) endpoint means at the reference frame
     joints_xy: np.ndarray  # (J, D) vertex means at the reference frame
     state: StickState | None = None
+    refinements: list = field(default_factory=list)
 
 
 def _stage(st: StickState, obs: Observations, value: float, merged: tuple[int, int] | None, sweeps: int,
@@ -654,7 +660,21 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
     """
     ref = int(np.argmax(obs.mask.sum(axis=0)))
     st, val, sweeps = run_em(st, obs, priors, settings, settings.n_iter, rng)
+    refinements = []
+    for _ in range(3 if settings.refine_sticks else 0):
+        from .initialise import initial_state
+        from .refine import refine_labels
+
+        labels, what = refine_labels(st, obs, rng, min_points=settings.min_stick_points)
+        if not what["splits"] and not what["joins"]:
+            break
+        refinements.append(what)
+        st = initial_state(obs, labels, int(labels.max()) + 1, priors, rng, endpoint_init=settings.endpoint_init,
+                           n_ends=settings.n_ends)
+        st, val, more = run_em(st, obs, priors, settings, settings.n_iter, rng)
+        sweeps += more
     stages = [_stage(st, obs, val, None, sweeps, ref)]
+    stages[0].refinements = refinements
     best = {"objective": (stages[0].objective, 0, st.copy()), "bic": (stages[0].bic, 0, st.copy())}
     total = st.n_sticks - 1 if settings.max_merges is None else min(settings.max_merges, st.n_sticks - 1)
     if progress:

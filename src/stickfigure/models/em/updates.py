@@ -44,16 +44,25 @@ __all__ = ["update_endpoints", "update_vertices", "update_phi", "update_motions"
            "update_ends", "update_precisions", "em_sweep"]
 
 
-def update_endpoints(st: StickState) -> None:
-    """Gaussian posterior of every endpoint given its stick and its vertex.
+def update_endpoints(st: StickState, which: np.ndarray | None = None) -> None:
+    """Gaussian posterior of every endpoint (or of the endpoints ``which``) given its stick and vertex.
 
     ``tau(e_i) = tau_m + a_g``, ``mu(e_i^f) = (tau_m R k_i + t + a_g mu(v_g^f)) / tau(e_i)``.
     """
-    a = (st.alpha / st.beta)[st.vertex_of]  # (ES,)
+    if which is None:
+        a = (st.alpha / st.beta)[st.vertex_of]  # (ES,)
+        tau = st.tau_m + a
+        pred = st.end_predictions()
+        st.mu_e = (st.tau_m * pred + a[:, None, None] * st.mu_v[st.vertex_of]) / tau[:, None, None]
+        st.tau_e = tau
+        return
+    g = st.vertex_of[which]
+    a = st.alpha[g] / st.beta[g]
     tau = st.tau_m + a
-    pred = st.end_predictions()
-    st.mu_e = (st.tau_m * pred + a[:, None, None] * st.mu_v[st.vertex_of]) / tau[:, None, None]
-    st.tau_e = tau
+    s = which // st.ends_per_stick
+    pred = (st.rot[s] @ st.ends[which][:, None, :, None])[..., 0] + st.trans[s]
+    st.mu_e[which] = (st.tau_m * pred + a[:, None, None] * st.mu_v[g]) / tau[:, None, None]
+    st.tau_e[which] = tau
 
 
 def _vertex_sums(st: StickState) -> tuple[np.ndarray, np.ndarray]:
@@ -529,7 +538,8 @@ def update_precisions(st: StickState, obs: Observations, priors: Priors) -> None
 
 
 def em_sweep(st: StickState, obs: Observations, priors: Priors, *, precisions: bool = True,
-             local: bool = True, n_procrustes: int = 1, global_rotations: bool = False) -> None:
+             local: bool = True, n_procrustes: int = 1, global_rotations: bool = False,
+             use_polar: bool = True) -> None:
     """One EM iteration: E-step (endpoints, vertices, phi) then M-step (motions, L, K, precisions).
 
     Parameters
@@ -540,12 +550,13 @@ def em_sweep(st: StickState, obs: Observations, priors: Priors, *, precisions: b
     local : bool
         Re-estimate L and K (off when imputing).
     global_rotations : bool
-        Use the multi-start rotation search (:func:`best_rotations`) in this sweep.
+        Use the multi-start rotation search (:func:`best_rotations`) in this sweep
+        (with the SVD start when ``use_polar``).
     """
     update_endpoints(st)
     update_vertices(st)
     update_phi(st, priors)
-    update_motions(st, obs, n_procrustes=n_procrustes, global_search=global_rotations)
+    update_motions(st, obs, n_procrustes=n_procrustes, global_search=global_rotations, use_polar=use_polar)
     if local:
         update_local(st, obs, priors)
         update_ends(st, priors)
