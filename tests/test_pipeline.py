@@ -168,6 +168,70 @@ def test_learn_from_video(tmp_path):
     assert "data:image/jpeg;base64," in html  # the video frames are in the report
 
 
+def _walker_video(path, n_frames=80, seed=0, W=480, H=360):
+    """The synthetic walker rendered as textured limbs over a textured background.
+
+    Each limb is the convex hull of its points, textured by warping its own
+    texture with the limb's affine motion (exact for a rigid limb under the
+    walker's orthographic camera). Returns the per-frame map of which limb
+    each pixel shows (-1: background), shape (F, H, W).
+    """
+    tr = sf.synthetic.walker(n_frames=n_frames, points_per_stick=12, noise=0.0, seed=seed, cycles=1.5)
+    xy = tr.xy
+    lo, hi = np.nanmin(xy.reshape(-1, 2), axis=0), np.nanmax(xy.reshape(-1, 2), axis=0)
+    s = 0.8 * min(W / (hi[0] - lo[0]), H / (hi[1] - lo[1]))
+    px = np.stack([(xy[..., 0] - lo[0]) * s + 0.1 * W, H - ((xy[..., 1] - lo[1]) * s + 0.1 * H)], axis=-1)
+    rng = np.random.default_rng(seed)
+
+    def texture(lo_, span):
+        t = cv2.GaussianBlur(rng.uniform(0, 255, (H, W)).astype(np.float32), (0, 0), 2.0)
+        return ((t - t.min()) / np.ptp(t) * span + lo_).astype(np.uint8)
+
+    bg = texture(30, 60)
+    S = tr.n_parts_true
+    texs = [texture(55, 200) for _ in range(S)]
+    labels = np.full((n_frames, H, W), -1, np.int16)
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), 25.0, (W, H))
+    for f in range(n_frames):
+        img = bg.copy()
+        for part in range(S):
+            m = tr.labels_true == part
+            A, _ = cv2.estimateAffine2D(px[m, 0].astype(np.float32), px[m, f].astype(np.float32), method=cv2.LMEDS)
+            hull = cv2.convexHull(px[m, f].astype(np.float32)).astype(np.int32)
+            mask = np.zeros((H, W), np.uint8)
+            cv2.fillConvexPoly(mask, hull, 255)
+            mask = cv2.dilate(mask, np.ones((5, 5), np.uint8)) > 0
+            img[mask] = cv2.warpAffine(texs[part], A, (W, H), flags=cv2.INTER_LINEAR)[mask]
+            labels[f][mask] = part
+        w.write(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
+    w.release()
+    return labels
+
+
+@pytest.mark.slow
+@_needs_end_to_end
+def test_learn_walker_video_known_answer(tmp_path):
+    """A rendered walking figure: tracked, selected and fitted from the video alone, scored against its limbs."""
+    from sklearn.metrics import adjusted_rand_score
+
+    labels = _walker_video(tmp_path / "walker.avi")
+    out = learn(tmp_path / "walker.avi", tmp_path / "o", method=END_TO_END)
+    pts = sf.load(out["points"])
+    skel = sf.Skeleton.load(out["model"])
+    # Each tracked point's true limb: the limb under it in most of the frames it is seen.
+    f = np.arange(pts.n_frames) + pts.meta["frame_offset"]
+    xi = np.clip(np.round(pts.xy[..., 0]), 0, labels.shape[2] - 1)
+    yi = np.clip(np.round(pts.xy[..., 1]), 0, labels.shape[1] - 1)
+    under = np.where(pts.observed, labels[np.broadcast_to(f, xi.shape), np.nan_to_num(yi).astype(int),
+                                         np.nan_to_num(xi).astype(int)], -2)
+    truth = np.array([np.bincount(u[u >= -1] + 1).argmax() - 1 for u in under])
+    assert np.mean(truth >= 0) > 0.95  # the static background is gone
+    on = truth >= 0
+    assert len(np.unique(truth[on])) >= 9  # most of the 11 limbs are represented
+    assert skel.n_sticks >= 6
+    assert adjusted_rand_score(truth[on], skel.labels[on]) > 0.6
+
+
 @pytest.mark.data
 @pytest.mark.slow
 @_needs_end_to_end
