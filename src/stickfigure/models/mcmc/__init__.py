@@ -1,0 +1,1 @@
+"""Method "mcmc" (work in progress)."""

@@ -1,0 +1,179 @@
+"""Running Markov chains: burn-in, thinning, parallel chains, collected samples.
+
+Each chain gets its own :class:`numpy.random.Generator` from a spawned
+:class:`numpy.random.SeedSequence`, so results do not depend on how the chains
+are spread over processes. With ``n_jobs > 1`` the chains run in separate
+processes (:class:`concurrent.futures.ProcessPoolExecutor`), each with its own
+tqdm progress bar.
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .data import initial_imputation, initial_state
+from .kernels import MoveStats, SweepConfig, sweep
+from .model import Hyper, y_posterior
+from .state import Data, State, log_joint
+
+__all__ = ["ChainSettings", "run_chain", "run_chains", "stack_draws"]
+
+
+@dataclass(frozen=True)
+class ChainSettings:
+    """Length of a chain and how it is started.
+
+    Attributes
+    ----------
+    n_sweeps : int
+        Sweeps in total, burn-in included.
+    burn_in : int
+        Sweeps discarded at the start.
+    thin : int
+        Keep every ``thin``-th sweep after burn-in.
+    init_clusters : int
+        Number of k-means clusters of the starting state (0: one per ``init_size`` points).
+    init_size : int
+    """
+
+    n_sweeps: int = 600
+    burn_in: int = 300
+    thin: int = 2
+    init_clusters: int = 0
+    init_size: int = 4
+
+
+def _record(st: State, data: Data) -> dict[str, Any]:
+    c = st.c
+    ymean, _, _ = y_posterior(data.x, st.theta[c], st.T[c], st.s_x[c], st.s_yh[c], st.s_yv[c])
+    pred = np.exp(1j * st.theta[c]) * ymean[:, None] + st.T[c]
+    return {"c": c.copy(), "parent": st.parent.copy(), "theta": st.theta.copy(), "T": st.T.copy(),
+            "prec": st.precisions(), "y": ymean, "pred": pred}
+
+
+def run_chain(z: np.ndarray, hyper: Hyper, cfg: SweepConfig, settings: ChainSettings,
+              seed: np.random.SeedSequence | int, chain_id: int = 0, progress: bool = False,
+              init: State | None = None) -> dict[str, Any]:
+    """Run one chain on model-coordinate data.
+
+    Parameters
+    ----------
+    z : complex ndarray, shape (I, F)
+        Trajectories in model coordinates, NaN where missing.
+    hyper, cfg, settings
+        Model, sweep and chain settings.
+    seed : SeedSequence or int
+    chain_id : int
+        Position of the progress bar.
+    init : State, optional
+        Starting state (else k-means clusters under the root).
+
+    Returns
+    -------
+    dict
+        ``trace_log_joint``, ``trace_n_sticks``, ``trace_lambda`` (every sweep, observed-data
+        log-joint), and the kept draws: ``c`` (D, I), ``parent`` (D, Kmax; -2 pads),
+        ``theta`` (D, Kmax, F), ``T`` (D, Kmax, F) complex, ``prec`` (D, Kmax, 4), ``y`` (D, I)
+        complex (posterior mean local positions given the draw), ``log_joint``, ``n_sticks``,
+        ``lam`` (D,); ``pred_mean`` (I, F) complex, the posterior mean prediction of every
+        entry; ``acceptance`` (dict); ``final_state``.
+    """
+    rng = np.random.default_rng(seed)
+    observed = ~np.isnan(z)
+    data = Data(x=initial_imputation(z), observed=observed)
+    I = z.shape[0]
+    if init is None:
+        k0 = settings.init_clusters or max(1, int(round(I / settings.init_size)))
+        st = initial_state(data, hyper, rng, k0)
+    else:
+        st = init.copy()
+    stats = MoveStats()
+    n = int(settings.n_sweeps)
+    tr_lj = np.empty(n)
+    tr_k = np.empty(n, np.int64)
+    tr_lam = np.empty(n)
+    draws: list[dict[str, Any]] = []
+    pred_sum = np.zeros(z.shape, complex)
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=n, desc=f"chain {chain_id}", position=chain_id, leave=True, mininterval=0.5)
+    try:
+        for s in range(n):
+            st = sweep(st, data, hyper, rng, cfg, stats)
+            tr_lj[s] = log_joint(st, data, hyper, observed=True)
+            tr_k[s] = st.K
+            tr_lam[s] = st.lam
+            if s >= settings.burn_in and (s - settings.burn_in) % settings.thin == 0:
+                rec = _record(st, data)
+                rec["log_joint"], rec["n_sticks"], rec["lam"] = tr_lj[s], st.K, st.lam
+                pred_sum += rec.pop("pred")
+                draws.append(rec)
+            if bar is not None:
+                bar.update(1)
+                if s % 20 == 0:
+                    bar.set_postfix(K=st.K, logp=f"{tr_lj[s]:.1f}", refresh=False)
+    finally:
+        if bar is not None:
+            bar.close()
+    out = stack_draws(draws, z.shape[1])
+    out.update(trace_log_joint=tr_lj, trace_n_sticks=tr_k, trace_lambda=tr_lam,
+               pred_mean=pred_sum / max(len(draws), 1), acceptance=stats.rates(), final_state=st)
+    return out
+
+
+def stack_draws(draws: list[dict[str, Any]], F: int) -> dict[str, np.ndarray]:
+    """Pad per-draw arrays (whose node count varies) to common shapes."""
+    D = len(draws)
+    Kmax = max((d["parent"].shape[0] for d in draws), default=0)
+    I = draws[0]["c"].shape[0] if D else 0
+    out = {
+        "c": np.zeros((D, I), np.int64),
+        "parent": np.full((D, Kmax), -2, np.int64),
+        "theta": np.zeros((D, Kmax, F)),
+        "T": np.zeros((D, Kmax, F), complex),
+        "prec": np.ones((D, Kmax, 4)),
+        "y": np.zeros((D, I), complex),
+        "log_joint": np.array([d["log_joint"] for d in draws], float),
+        "n_sticks": np.array([d["n_sticks"] for d in draws], np.int64),
+        "lam": np.array([d["lam"] for d in draws], float),
+    }
+    for t, d in enumerate(draws):
+        K = d["parent"].shape[0]
+        out["c"][t] = d["c"]
+        out["parent"][t, :K] = d["parent"]
+        out["theta"][t, :K] = d["theta"]
+        out["T"][t, :K] = d["T"]
+        out["prec"][t, :K] = d["prec"]
+        out["y"][t] = d["y"]
+    return out
+
+
+def _chain_job(args: tuple) -> dict[str, Any]:
+    return run_chain(*args)
+
+
+def run_chains(z: np.ndarray, hyper: Hyper, cfg: SweepConfig, settings: ChainSettings, n_chains: int,
+               rng: np.random.Generator, n_jobs: int | None = None, progress: bool = False) -> list[dict[str, Any]]:
+    """Run ``n_chains`` independent chains, in parallel processes when ``n_jobs`` > 1.
+
+    Parameters
+    ----------
+    n_jobs : int, optional
+        Worker processes; None means ``min(n_chains, os.cpu_count())``, 1 runs in this process.
+    """
+    seeds = np.random.SeedSequence(int(rng.integers(2**63 - 1))).spawn(n_chains)
+    jobs = [(z, hyper, cfg, settings, seeds[c], c, progress) for c in range(n_chains)]
+    if n_jobs is None:
+        n_jobs = min(n_chains, os.cpu_count() or 1)
+    n_jobs = max(1, min(int(n_jobs), n_chains))
+    if n_jobs == 1:
+        return [_chain_job(j) for j in jobs]
+    with ProcessPoolExecutor(max_workers=n_jobs) as ex:
+        return list(ex.map(_chain_job, jobs))
