@@ -202,8 +202,10 @@ def learn(
     # Over the video at its own size (at most 960 px wide); missing points where the model puts them.
     width = min(int(traj.image_size[0]), 960) if traj.image_size else 640
     view = "isometric" if traj.n_dims == 3 else None
+    # Points without an image (motion capture) are followed, so a figure walking away stays in view.
+    follow = {"follow": True} if traj.image_size is None and _accepts(animate, "follow") else {}
     out["animation"] = animate(traj, skeleton, outdir / f"skeleton.{animation}", width=width, view=view,
-                               imputed=True, progress=progress)
+                               imputed=True, progress=progress, **follow)
     _say(progress, "writing the report")
     out["report"] = write_report(skeleton, traj, outdir / "report.html", title=title)
     _say(progress, f"done in {time.perf_counter() - t0:.1f} s: {outdir}")

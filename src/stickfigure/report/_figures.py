@@ -93,7 +93,8 @@ def method_figures(skeleton: Skeleton, traj: Trajectories) -> tuple[list[tuple[s
             elif hasattr(mod, "figure"):
                 fig = mod.figure(skeleton, traj)
                 doc = (mod.figure.__doc__ or "").strip().splitlines()
-                figs.append((doc[0] if doc else f"{skeleton.method} diagnostics", to_data_uri(getattr(fig, "figure", fig))))
+                caption = doc[0].replace("``", "") if doc else f"{skeleton.method} diagnostics"
+                figs.append((caption, to_data_uri(getattr(fig, "figure", fig))))
             else:
                 notes.append(f"stickfigure.plot.{mod.__name__.rsplit('.', 1)[-1]} has no report_figures() or figure().")
         except Exception as exc:  # a broken figure must not cost the user the whole report
