@@ -238,7 +238,6 @@ def test_evaluate_needs_ground_truth(work, model, tmp_path, capsys):
 
 
 def test_report(work, model, tmp_path):
-    pytest.importorskip("stickfigure.report", reason="stickfigure.report is not installed")
     d, fig = work
     assert main(["-q", "report", str(model), str(d / "fig.npz"), "-o", str(tmp_path / "r.html"), "--title",
                  "a test"]) == 0
@@ -273,7 +272,6 @@ def test_track(tmp_path, capsys):
 
 
 def test_learn(work, tmp_path, capsys):
-    pytest.importorskip("stickfigure.pipeline", reason="stickfigure.pipeline is not installed")
     d, fig = work
     labels = json.dumps(fig.labels_true.tolist())
     assert main(["-q", "learn", str(d / "fig.npz"), "--method", "mi-tree", "--param", f"labels={labels}",

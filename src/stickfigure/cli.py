@@ -459,6 +459,19 @@ def _format_table(rows: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _as_mapping(result: Any, name: str) -> dict[str, Any]:
+    """A library result as a dict: a mapping, a dataclass, or a single number called ``name``."""
+    import dataclasses
+
+    if isinstance(result, dict):
+        return dict(result)
+    if dataclasses.is_dataclass(result) and not isinstance(result, type):
+        return dataclasses.asdict(result)
+    if hasattr(result, "_asdict"):
+        return dict(result._asdict())
+    return {name: result}
+
+
 def _jsonable(v: Any) -> Any:
     import numpy as np
 
@@ -476,21 +489,26 @@ def _jsonable(v: Any) -> Any:
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     try:
         from .metrics import score_skeleton
-    except ImportError as exc:
-        raise _Unavailable(f"evaluate needs stickfigure.metrics, which is not installed ({exc})") from None
+    except ModuleNotFoundError as exc:
+        if exc.name != "stickfigure.metrics":
+            raise
+        raise _Unavailable("evaluate needs stickfigure.metrics, which is not installed") from None
     skeleton = _load_model(args.model)
     traj = _load_input(args, args.input)
     _check_match(skeleton, traj, args.input)
     if traj.labels_true is None:
         raise ValueError(f"{Path(args.input).name} has no ground truth (labels_true) to score against")
-    scores = _jsonable(dict(score_skeleton(skeleton, traj)))
+    scores = _jsonable(_as_mapping(score_skeleton(skeleton, traj), "score"))
     if args.protocol:
         try:
             from .evaluation import imputation_protocol
-        except ImportError as exc:
-            raise _Unavailable(f"--protocol needs stickfigure.evaluation, which is not installed ({exc})") from None
+        except ModuleNotFoundError as exc:
+            if exc.name != "stickfigure.evaluation":
+                raise
+            raise _Unavailable("--protocol needs stickfigure.evaluation, which is not installed") from None
+        # The held-out test re-learns the model's method (default parameters) on the first 70% of frames.
         result = imputation_protocol(traj, method=skeleton.method, random_state=0)
-        scores["protocol"] = _jsonable(dict(result) if isinstance(result, dict) else {"rmse": result})
+        scores["protocol"] = _jsonable(_as_mapping(result, "rmse"))
     if args.json:
         print(json.dumps(scores, indent=1))
     else:
@@ -561,10 +579,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
 
 
 def _cmd_learn(args: argparse.Namespace) -> int:
-    try:
-        from .pipeline import learn
-    except ImportError as exc:
-        raise _Unavailable(f"learn needs stickfigure.pipeline, which is not installed ({exc})") from None
+    from .pipeline import learn
     from .plot import parse_frame_range
 
     params = _key_values(args.param, "--param")
@@ -586,10 +601,8 @@ def _cmd_learn(args: argparse.Namespace) -> int:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
-    try:
-        from .report import write_report
-    except ImportError as exc:
-        raise _Unavailable(f"report needs stickfigure.report, which is not installed ({exc})") from None
+    from .report import write_report
+
     out = _check_suffix(args.output, (".html", ".htm"), "the output")
     skeleton = _load_model(args.model)
     traj = _load_input(args, args.input)

@@ -77,9 +77,13 @@ def _scores(skeleton: Any, traj: Any) -> dict[str, Any] | None:
     """Scores against the truth from :mod:`stickfigure.metrics` (None when it is not installed)."""
     try:
         from .metrics import score_skeleton
-    except ImportError:
+    except ModuleNotFoundError as exc:
+        if exc.name != "stickfigure.metrics":
+            raise
         return None
-    return dict(score_skeleton(skeleton, traj))
+    from .cli import _as_mapping
+
+    return _as_mapping(score_skeleton(skeleton, traj), "score")
 
 
 def run_demo(outdir: str | Path = "stickfigure-demo", *, method: str | None = None, seed: int = 0,
