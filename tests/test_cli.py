@@ -112,12 +112,10 @@ def test_debug_shows_the_traceback(work):
 
 
 def test_console_script_subprocess(tmp_path):
-    """The installed console script: --help works, bad input gives exit 2 and one line."""
+    """The installed console script: bad input gives exit 2 and one line (help is tested in-process)."""
     exe = Path(sys.executable).with_name("stickfigure")
     if not exe.exists():
         pytest.skip(f"the console script is not installed beside {sys.executable}")
-    ok = subprocess.run([str(exe), "render", "--help"], capture_output=True, text=True, timeout=60)
-    assert ok.returncode == 0 and "usage: stickfigure render" in ok.stdout
     bad = subprocess.run([str(exe), "render", str(tmp_path / "m.json"), str(tmp_path / "x.csv"), "-o",
                           str(tmp_path / "o.png")], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2
@@ -293,11 +291,12 @@ def _run_demo(out, capsys, *argv):
 
 def test_demo_wiring(tmp_path, capsys):
     """The demo's steps and files, with a fast method (the default em run is the slow test below)."""
+    method = "sfm" if "sfm" in sf.available_methods() else "mi-tree"
     out = tmp_path / "demo"
-    _run_demo(out, capsys, "--n-frames", "30", "--method", "mi-tree")
+    _run_demo(out, capsys, "--n-frames", "30", "--method", method)
     assert Image.open(out / "random.gif").n_frames == 30
     summary = (out / "summary.txt").read_text()
-    assert "method: mi-tree" in summary and "truth: 5 sticks" in summary
+    assert f"method: {method}" in summary and "truth: 5 sticks" in summary
     sk = sf.Skeleton.load(out / "model.json")
     truth = sf.load(out / "random.npz")
     assert sk.n_points == truth.n_points and truth.n_parts_true == 5 and truth.missing_fraction > 0.05
