@@ -266,3 +266,16 @@ def test_joint_angles_invariant_to_similarity_transforms(phi, scale, shift):
     a1, _ = export.joint_angles(truth_skeleton(moved, motions=False), moved)
     diff = (a1 - a0 + 180) % 360 - 180
     assert np.abs(diff).max() < 1e-6
+
+
+def test_pose_uses_the_methods_own_joints_on_its_training_frames(planar, planar_skeleton):
+    shifted = planar_skeleton.joints + 0.01  # make stored joints distinguishable from any re-fit
+    sk = sf.Skeleton(method="truth", labels=planar_skeleton.labels, n_sticks=4, edges=planar_skeleton.edges,
+                     joints=shifted, motions=planar_skeleton.motions, local=planar_skeleton.local)
+    np.testing.assert_array_equal(export.pose(sk, planar).joints, shifted)
+    # Another clip of the same length: the stored motions do not fit it, the joints are re-posed.
+    reversed_clip = planar.slice(frames=np.arange(planar.n_frames)[::-1])
+    p = export.pose(sk, reversed_clip)
+    assert not np.allclose(p.joints, shifted)
+    err = np.linalg.norm(p.joints - planar.joints_true[:, ::-1], axis=2)
+    assert np.median(err) < 0.03 * _scale(planar)

@@ -25,7 +25,9 @@ uses the observed points only (a stick with no visible point in a frame is
 unknown there).
 
 **Joints on new frames.** The method's joint positions are known for its
-training frames. Each joint is rigidly attached to both of its sticks, so it
+training frames, and are used as they are when ``traj`` holds those frames
+(recognised by the stored motions fitting its points as well as re-fitted
+ones do). Each joint is rigidly attached to both of its sticks, so it
 has fixed coordinates ``c`` in each stick's local frame: the least-squares
 solution of ``A_sf c + t_sf = J_f`` over the training frames. On new frames
 the joint is the mean of the two sticks' predictions ``A_sf c_s + t_sf``.
@@ -158,6 +160,24 @@ def _joint_locals(skeleton: Skeleton, joints: np.ndarray, a: np.ndarray) -> np.n
     return np.einsum("eij,ej->ei", np.linalg.pinv(G, rcond=1e-10, hermitian=True), b)
 
 
+def _is_training_data(skeleton: Skeleton, traj: Trajectories, refit: np.ndarray) -> bool:
+    """Whether ``traj`` holds the skeleton's training frames.
+
+    True when the stored motions explain the observed points about as well as
+    motions re-fitted to them (median residual at most 1.5 times the re-fit's):
+    for any other clip the stored motions describe other poses and miss by far.
+    """
+    if skeleton.motions.shape[1] != traj.n_frames:
+        return False
+    obs = traj.observed & (skeleton.labels >= 0)[:, None]
+    if not obs.any():
+        return False
+    stored = skeleton.predict()
+    r_stored = np.median(np.linalg.norm(stored[obs] - traj.xy[obs], axis=1))
+    r_refit = np.median(np.linalg.norm(refit[obs] - traj.xy[obs], axis=1))
+    return bool(np.isfinite(r_stored) and r_stored <= 1.5 * r_refit + 1e-12 * (1 + np.nanstd(traj.xy)))
+
+
 def _nanmean_weighted(X: np.ndarray, W: np.ndarray) -> np.ndarray:
     """Weighted mean over axis 0 of X (N, F, D) with weights W (N, F) -> (F, D), NaN where no weight."""
     w = W.sum(axis=0)
@@ -260,8 +280,12 @@ def pose(skeleton: Skeleton, traj: Trajectories | np.ndarray | None = None) -> P
             seen[np.unique(labels[(labels >= 0) & observed.any(axis=1)])] = True
             motions[~seen] = np.nan  # a stick never seen in these frames is unknown
             predicted = predict_points(motions, skeleton.local, labels)
+            if _is_training_data(skeleton, traj, predicted):
+                motions, predicted = skeleton.motions, skeleton.predict()
             points = np.where(observed[..., None], traj.xy, predicted)
-            if stored_joints is not None:
+            if stored_joints is not None and motions is skeleton.motions:
+                joints = stored_joints  # the method's own joints for its own frames
+            elif stored_joints is not None:
                 ca = _joint_locals(skeleton, stored_joints, parent_stick)
                 cb = _joint_locals(skeleton, stored_joints, child_stick)
                 Ma, Mb = motions[parent_stick], motions[child_stick]
