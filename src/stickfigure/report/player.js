@@ -121,7 +121,7 @@
       this.grid();
     }
     var lw = Math.max(2, Math.min(W, H) / 110);
-    var pr = Math.max(2, Math.min(W, H) / 190);
+    var pr = Math.max(3, Math.min(W, H) / 130);
     var pts = d.points[f], imp = d.imputed ? d.imputed[f] : null;
     var P = d.labels.length;
     function colour(p) { var l = d.labels[p]; return l >= 0 ? d.colors[l] : d.unassigned; }
@@ -172,7 +172,7 @@
           ctx.lineWidth = 1.5; ctx.strokeStyle = colour(i); ctx.stroke();
         } else {
           ctx.fillStyle = colour(i); ctx.fill();
-          ctx.lineWidth = 0.8; ctx.strokeStyle = "rgba(0,0,0,0.6)"; ctx.stroke();
+          ctx.lineWidth = 0.6; ctx.strokeStyle = "rgba(0,0,0,0.5)"; ctx.stroke();
         }
       }
     }
