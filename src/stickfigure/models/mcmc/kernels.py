@@ -80,6 +80,7 @@ __all__ = [
     "swap_move",
     "rehang_move",
     "update_translations",
+    "update_translations_given_y",
     "rotation_shift",
     "update_rotations",
     "update_precisions",
@@ -916,6 +917,33 @@ def update_translations(st: State, data: Data, hyper: Hyper, rng: np.random.Gene
         mean, c, e = translation_conditional(st.theta[k], st.s_x[k], st.s_yh[k], st.s_yv[k], int(n[k]), xsum[k], J,
                                              s_par, kids.size, st.T[kids].sum(0), st.s_T[k])
         st.T[k] = translation_sample(mean, st.theta[k], c, e, rng)
+
+
+def update_translations_given_y(st: State, data: Data, y: np.ndarray, hyper: Hyper,
+                                rng: np.random.Generator) -> None:
+    """Gibbs update of every node's translations given y (eqs. 15-17 with ``Delta x_i = x_i - R_k y_i``).
+
+    Per frame the conditional is Gaussian with precision ``n s_x + h s_T + s_parent``;
+    used where the local positions are known (imputation on new frames).
+    """
+    F = data.n_frames
+    K = st.K
+    Z = np.zeros((K, data.n_points))
+    Z[st.c, np.arange(data.n_points)] = 1.0
+    n = Z.sum(1)
+    for k in rng.permutation(K):
+        J, s_par, _ = _node_parent(st, hyper, k)
+        kids = st.children(k)
+        rot = np.exp(1j * st.theta[k])
+        L = 6.0 / np.sqrt(st.s_yh[k])
+        prec = n[k] * st.s_x[k] + kids.size * st.s_T[k] + s_par
+        b = s_par * J + 0j
+        if n[k]:
+            b = b + st.s_x[k] * (Z[k] @ data.x - rot * (Z[k] @ y))
+        if kids.size:
+            b = b + st.s_T[k] * (st.T[kids].sum(0) - kids.size * rot * L)
+        z = rng.standard_normal(F) + 1j * rng.standard_normal(F)
+        st.T[k] = b / prec + z / np.sqrt(prec)
 
 
 def _node_parent(st: State, hyper: Hyper, k: int) -> tuple[np.ndarray, float, np.ndarray]:

@@ -19,12 +19,14 @@ from .model import (
     gamma_logpdf,
     marginal_loglik,
     rotation_prior_logpdf,
+    sample_rotation_prior,
     translation_prior_logpdf,
     y_posterior,
 )
-from .prior import ancestor_matrix, log_tree_prior
+from .prior import ancestor_matrix, depths, log_tree_prior, sample_tree_prior
 
-__all__ = ["State", "Data", "parent_context", "node_prior_logpdf", "point_loglik", "log_joint", "sample_y"]
+__all__ = ["State", "Data", "parent_context", "node_prior_logpdf", "point_loglik", "log_joint", "sample_y",
+           "sample_node_parameters", "sample_prior_state", "simulate_data"]
 
 
 @dataclass
@@ -187,3 +189,42 @@ def sample_y(st: State, data: Data, rng: np.random.Generator) -> np.ndarray:
     mean, vh, vv = y_posterior(data.x, st.theta[c], st.T[c], st.s_x[c], st.s_yh[c], st.s_yv[c])
     I = mean.shape[0]
     return mean + np.sqrt(vh) * rng.standard_normal(I) + 1j * np.sqrt(vv) * rng.standard_normal(I)
+
+
+def sample_node_parameters(st: State, hyper: Hyper, rng: np.random.Generator) -> None:
+    """Draw every node's parameters from G(. | parent), parents first (in place)."""
+    K, F = st.theta.shape
+    ab = hyper.gamma_ab
+    prec = rng.gamma(ab[:, 0], 1.0 / ab[:, 1], size=(K, 4))
+    st.s_x, st.s_yh, st.s_yv, st.s_T = (prec[:, r].copy() for r in range(4))
+    for k in np.argsort(depths(st.parent), kind="stable"):
+        p = st.parent[k]
+        if p >= 0:
+            th_p, J, s_par = st.theta[p], distal_end(st.theta[p], st.T[p], st.s_yh[p]), st.s_T[p]
+        else:
+            th_p, J, s_par = np.zeros(F), np.zeros(F, complex), hyper.root_precision
+        st.theta[k] = sample_rotation_prior(th_p, hyper.kappa_rho, hyper.kappa_nd, rng)
+        st.T[k] = J + (rng.standard_normal(F) + 1j * rng.standard_normal(F)) / np.sqrt(s_par)
+
+
+def sample_prior_state(n_points: int, n_frames: int, hyper: Hyper, rng: np.random.Generator,
+                       lam: float | None = None) -> State:
+    """An exact draw of (indicators, tree, node parameters) from the prior."""
+    lam = hyper.lam if lam is None else lam
+    c, parent = sample_tree_prior(n_points, lam, rng)
+    K = parent.shape[0]
+    st = State(c=c, parent=parent, theta=np.zeros((K, n_frames)), T=np.zeros((K, n_frames), complex),
+               s_x=np.ones(K), s_yh=np.ones(K), s_yv=np.ones(K), s_T=np.ones(K), lam=float(lam))
+    sample_node_parameters(st, hyper, rng)
+    return st
+
+
+def simulate_data(st: State, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Draw local positions y (I,) and trajectories x (I, F) from the data model (eqs. 1-2)."""
+    c = st.c
+    I, F = c.shape[0], st.theta.shape[1]
+    half = 3.0 / np.sqrt(st.s_yh[c])
+    y = (half + rng.standard_normal(I) / np.sqrt(st.s_yh[c])) + 1j * rng.standard_normal(I) / np.sqrt(st.s_yv[c])
+    noise = (rng.standard_normal((I, F)) + 1j * rng.standard_normal((I, F))) / np.sqrt(st.s_x[c])[:, None]
+    x = np.exp(1j * st.theta[c]) * y[:, None] + st.T[c] + noise
+    return y, x
