@@ -28,7 +28,7 @@ def chain():
 
 @pytest.fixture(scope="module")
 def fitted(chain):
-    est = EMSkeleton(random_state=0, labels_init=chain.labels_true, n_iter=100)
+    est = EMSkeleton(random_state=0, labels=chain.labels_true, n_iter=100)
     return est.fit(chain)
 
 
@@ -86,7 +86,7 @@ def test_affinity_propagation_start(small_figure):
 
 def test_impute_held_out_frames(chain, fitted):
     train, test = chain.split(0.7)
-    est = EMSkeleton(random_state=0, labels_init=chain.labels_true, n_iter=100).fit(train)
+    est = EMSkeleton(random_state=0, labels=chain.labels_true, n_iter=100).fit(train)
     occluded, hidden = sf.synthetic.occlude(test, seed=1)
     filled = est.impute(occluded)
     assert filled.shape == test.xy.shape
@@ -102,7 +102,7 @@ def test_missing_training_data(chain):
     xy = chain.xy.copy()
     xy[rng.random(xy.shape[:2]) < 0.3] = np.nan
     sk = sf.fit(chain.with_xy(xy, allow_unobserved=False), method="em", random_state=0,
-                labels_init=chain.labels_true, n_iter=80)
+                labels=chain.labels_true, n_iter=80)
     assert _edges(sk, chain) == _true_edges(chain)
 
 
@@ -120,7 +120,7 @@ def test_save_load_and_impute_after_loading(tmp_path, chain, fitted):
     ({"n_ends": 1}, "n_ends"),
     ({"n_iter": 0}, "n_iter"),
     ({"tol": -1.0}, "tol"),
-    ({"labels_init": [0, 1]}, "labels_init"),
+    ({"labels": [0, 1]}, "labels"),
 ])
 def test_bad_parameters(chain, bad, match):
     with pytest.raises(ValueError, match=match):
@@ -136,7 +136,7 @@ def test_3d_data_is_rejected():
 def test_paper_variants_run(chain):
     # The paper's choices: two endpoints at the centroid, mean merge, whole-model scoring,
     # fixed iteration counts, no baseline, no score reuse, no stick refinement.
-    sk = sf.fit(chain, method="em", random_state=0, labels_init=chain.labels_true, n_ends=2,
+    sk = sf.fit(chain, method="em", random_state=0, labels=chain.labels_true, n_ends=2,
                 endpoint_init="centroid", merge_init="mean", merge_scope="full", n_iter=40, n_iter_merge=10,
                 tol=0.0, merge_baseline=False, reuse_scores=False, refine_sticks=False)
     assert len(sk.info["stages"]) == 3

@@ -86,8 +86,10 @@ class EMSkeleton(StickEstimator):
         A stick without joints that keeps fewer points after resampling is dissolved.
     max_sticks : int, optional
         Upper bound of the number of initial clusters (default ``min(20, P // 3)``).
-    labels_init : array_like of int, shape (P,), optional
-        Initial assignments instead of Affinity Propagation.
+    labels : array_like of int, shape (P,), optional
+        Initial groups of the points instead of Affinity Propagation (resampling and
+        the stick check may still change them; pass ``refine_sticks=False`` and
+        ``resample_every=0`` to keep them).
     refine_sticks : bool
         After the first EM run, split sticks that are not rigid and join sticks that
         move as one, by BIC (an extension: the paper keeps the clustering's count).
@@ -111,7 +113,7 @@ class EMSkeleton(StickEstimator):
                  merge_init: str = "joint", merge_scope: str = "local", max_candidates: int | None = None,
                  max_merges: int | None = None, merge_baseline: bool = True, n_polish: int = 3,
                  reuse_scores: bool = True, tol: float = 1e-4, min_stick_points: int = 3,
-                 max_sticks: int | None = None, labels_init: Any = None, refine_sticks: bool = True,
+                 max_sticks: int | None = None, labels: Any = None, refine_sticks: bool = True,
                  tau_p: float = 1e-3,
                  alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e10, impute_iter: int = 100,
                  random_state: Any = None, progress: bool = False) -> None:
@@ -132,7 +134,7 @@ class EMSkeleton(StickEstimator):
         self.tol = tol
         self.min_stick_points = min_stick_points
         self.max_sticks = max_sticks
-        self.labels_init = labels_init
+        self.labels = labels
         self.refine_sticks = refine_sticks
         self.tau_p = tau_p
         self.alpha0 = alpha0
@@ -183,7 +185,7 @@ class EMSkeleton(StickEstimator):
             raise ValueError(f"em models 2D observations, got {traj.n_dims}D data; project 3D data first "
                              "(traj.project())")
         settings, priors = self._settings()
-        stages, selected, norm, info0 = fit_stages(traj, settings, priors, rng, labels_init=self.labels_init,
+        stages, selected, norm, info0 = fit_stages(traj, settings, priors, rng, labels=self.labels,
                                                    max_sticks=self.max_sticks, selection=self.selection,
                                                    endpoint_init=self.endpoint_init, n_ends=int(self.n_ends),
                                                    progress=self.progress)
@@ -208,10 +210,16 @@ class EMSkeleton(StickEstimator):
 
         The new frames are normalised with the training centre and scale so the
         learned precisions apply. Motions start from a per-frame Procrustes fit of
-        the fixed local shapes to the visible points (frames where a stick shows
-        fewer than 3 points copy the nearest frame where it shows more), then
-        ``impute_iter`` EM iterations update endpoints, vertices, vertex
-        precisions and motions.
+        the fixed local shapes to the visible points where a stick shows at least
+        4 points and 60% of them; in the other frames (where a handful of points
+        leaves the depth-mirror ambiguity of orthographic projection open) the
+        rotation is interpolated (slerp) between those frames and the translation
+        taken from the visible points, or interpolated where none is visible.
+        Then ``impute_iter`` EM iterations (local updates only, so each frame stays
+        in the branch it starts in) update endpoints, vertices, vertex precisions
+        and motions; in frames where a stick shows fewer than 3 points its
+        rotation keeps the interpolated value (the model has no prior on motions,
+        so such a frame cannot pin it down) while its translation is updated.
         """
         state, obs, norm = _impute_state(skeleton, traj)
         n_iter = int(skeleton.params.get("impute_iter", 100))
@@ -219,31 +227,35 @@ class EMSkeleton(StickEstimator):
         settings = EMSettings(**{**skeleton.info["settings"], "tol": 0.0})
         from .updates import em_sweep
 
+        # With fewer than 3 visible points (plus its endpoints) a frame leaves the stick's rotation
+        # open (a turn about the line through two points, a mirror): keep the interpolated one there.
+        hold = state.design(obs).n < 3
         for _ in range(n_iter):
-            em_sweep(state, obs, priors, precisions=False, local=False, n_procrustes=settings.n_procrustes)
+            em_sweep(state, obs, priors, precisions=False, local=False, n_procrustes=settings.n_procrustes,
+                     hold=hold)
         centre, scale = norm
         return state.point_predictions() * scale + centre
 
 
 # --------------------------------------------------------------------------- helpers
 def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np.random.Generator, *,
-               labels_init: Any = None, max_sticks: int | None = None, selection: str = "objective",
+               labels: Any = None, max_sticks: int | None = None, selection: str = "objective",
                endpoint_init: str = "axis", n_ends: int = 2, progress: bool = False
                ) -> tuple[list[Stage], int, tuple[np.ndarray, float], dict[str, Any]]:
     """Initialisation and the whole structure search; returns every stage and the selected one."""
     obs, centre, scale = normalise(traj.xy)
     P = traj.n_points
     info0: dict[str, Any] = {}
-    if labels_init is None:
+    if labels is None:
         from ...segmentation import affinity_propagation_segments
 
         ms = max_sticks if max_sticks is not None else int(max(2, min(20, P // 3)))
         labels, ap = affinity_propagation_segments(traj.xy, max_segments=ms, random_state=rng, return_info=True)
         info0["initial_clustering"] = {k: v for k, v in ap.items() if isinstance(v, (int, float, str, type(None)))}
     else:
-        labels = check_labels(labels_init, P, "labels_init")
+        labels = check_labels(labels, P, "labels")
         if (labels < 0).any():
-            raise ValueError("labels_init must assign every point to a stick (no -1)")
+            raise ValueError("labels must assign every point to a stick (no -1)")
     _, labels = np.unique(labels, return_inverse=True)
     S = int(labels.max()) + 1
     info0["n_initial_sticks"] = S
@@ -316,6 +328,38 @@ def _skeleton(stages: list[Stage], selected: int, norm: tuple[np.ndarray, float]
                     info=info)
 
 
+def _interpolate_rotations(R: np.ndarray, good: np.ndarray) -> np.ndarray:
+    """Rotations (F, D, 3) kept where ``good``, spherically interpolated in between (held at the ends)."""
+    from .updates import quat_to_rot, rot_to_quat
+
+    F, D, _ = R.shape
+    gi = np.flatnonzero(good)
+    if gi.size == F:
+        return R
+    q = rot_to_quat(complete_rotation(R[gi]))
+    # Consecutive quaternions on the same hemisphere (q and -q are the same rotation).
+    flip = np.ones(gi.size)
+    flip[1:] = np.sign(np.sum(q[1:] * q[:-1], axis=1) + 1e-300)
+    q = q * np.cumprod(flip)[:, None]
+    f = np.arange(F)
+    i1 = np.clip(np.searchsorted(gi, f), 0, gi.size - 1)
+    i0 = np.clip(i1 - 1, 0, gi.size - 1)
+    i0 = np.where(gi[i1] == f, i1, i0)
+    g0, g1 = gi[i0], gi[i1]
+    w = np.where(g1 > g0, (f - g0) / np.maximum(g1 - g0, 1), 0.0)
+    w = np.where(f >= gi[-1], 0.0, w)
+    q0, q1 = q[i0], q[np.where(f >= gi[-1], i0, i1)]
+    dot = np.clip(np.sum(q0 * q1, axis=1), -1.0, 1.0)
+    th = np.arccos(dot)
+    sth = np.sin(th)
+    small = sth < 1e-8
+    a = np.where(small, 1.0 - w, np.sin((1.0 - w) * th) / np.where(small, 1.0, sth))
+    b = np.where(small, w, np.sin(w * th) / np.where(small, 1.0, sth))
+    qi = a[:, None] * q0 + b[:, None] * q1
+    qi /= np.linalg.norm(qi, axis=1, keepdims=True)
+    return quat_to_rot(qi)[:, :D, :]
+
+
 def _impute_state(skeleton: Skeleton, traj: Trajectories) -> tuple[StickState, Observations, tuple]:
     """A state for new frames: fixed L, K, G, R; motions by Procrustes; vertices from endpoints."""
     from ...geometry import orthogonal_procrustes_rows
@@ -341,7 +385,9 @@ def _impute_state(skeleton: Skeleton, traj: Trajectories) -> tuple[StickState, O
         idx = np.flatnonzero(labels == s)
         m = mask[idx].T.astype(float)  # (F, n)
         cnt = m.sum(axis=1)
-        good = cnt >= 3
+        # A rotation from a few points can sit in the wrong mirror branch: start those frames
+        # from the interpolation of the well-observed ones, and let EM refine them locally.
+        good = cnt >= max(4, int(np.ceil(0.6 * idx.size)))
         if not good.any():
             good = cnt >= max(cnt.max(), 1)
         w = np.nan_to_num(obs.w[idx]).transpose(1, 2, 0)  # (F, D, n)
@@ -351,13 +397,14 @@ def _impute_state(skeleton: Skeleton, traj: Trajectories) -> tuple[StickState, O
         A = (w - abar[..., None]) * m[:, None, :]
         B = (local[idx].T[None] - lbar[..., None]) * m[:, None, :]
         R = orthogonal_procrustes_rows(A, B)
-        gi = np.flatnonzero(good)
-        near = gi[np.clip(np.searchsorted(gi, np.arange(F)), 0, gi.size - 1)]
-        prev = gi[np.clip(np.searchsorted(gi, np.arange(F)) - 1, 0, gi.size - 1)]
-        near = np.where(np.abs(prev - np.arange(F)) < np.abs(near - np.arange(F)), prev, near)
-        R = R[near]
+        R = _interpolate_rotations(R, good)
         t = abar - np.einsum("fdk,fk->fd", R, lbar)
-        rot[s], trans[s] = R, t[near]
+        seen = cnt > 0
+        if not seen.all():  # no visible point: translation interpolated between frames that have one
+            si = np.flatnonzero(seen)
+            for d in range(D):
+                t[~seen, d] = np.interp(np.flatnonzero(~seen), si, t[si, d])
+        rot[s], trans[s] = R, t
     tau_w, tau_m, tau_t = (float(v) for v in skeleton.state["precisions"])
     vertex_of = np.asarray(skeleton.state["vertex_of"], np.int64)
     J = int(vertex_of.max()) + 1

@@ -445,7 +445,8 @@ def _principal_axes(st: StickState) -> tuple[np.ndarray, np.ndarray]:
 
 
 def update_motions(st: StickState, obs: Observations, *, n_procrustes: int = 1, newton: bool = False,
-                   global_search: bool = False, sticks: np.ndarray | None = None, use_polar: bool = True) -> None:
+                   global_search: bool = False, sticks: np.ndarray | None = None, use_polar: bool = True,
+                   hold: np.ndarray | None = None) -> None:
     """Rotations and translations of every stick in every frame, jointly.
 
     The weighted problem ``min_{R,t} sum_n w_n |a_n - R b_n - t|^2`` over the
@@ -456,7 +457,9 @@ def update_motions(st: StickState, obs: Observations, *, n_procrustes: int = 1, 
     Green-Gower iteration crawls: sticks whose points are nearly collinear); each
     new rotation is kept only where it lowers that energy, so the update is
     monotone. ``global_search`` runs :func:`best_rotations` instead of the Newton
-    step, on the sticks in ``sticks`` (indices) or on all.
+    step, on the sticks in ``sticks`` (indices) or on all. ``hold`` (S, F) keeps
+    the current rotation of those (stick, frame) pairs (the translation is still
+    updated).
     """
     a_bar, b_bar, C_ab, C_bb = _motion_statistics(st, obs)
     q0 = st._quat if st._quat is not None and st._quat_of is st.rot else rot_to_quat(complete_rotation(st.rot))
@@ -482,6 +485,9 @@ def update_motions(st: StickState, obs: Observations, *, n_procrustes: int = 1, 
         if better.any():
             R = R_n
             q = np.where(better[..., None], rot_to_quat(complete_rotation(R_n)), q)
+    if hold is not None:  # rotations held where the caller says the frame cannot determine them
+        R = np.where(hold[..., None, None], st.rot, R)
+        q = np.where(hold[..., None], q0, q)
     st.rot = R
     st._quat = q
     st._quat_of = R
@@ -539,7 +545,7 @@ def update_precisions(st: StickState, obs: Observations, priors: Priors) -> None
 
 def em_sweep(st: StickState, obs: Observations, priors: Priors, *, precisions: bool = True,
              local: bool = True, n_procrustes: int = 1, global_rotations: bool = False,
-             use_polar: bool = True) -> None:
+             use_polar: bool = True, hold: np.ndarray | None = None) -> None:
     """One EM iteration: E-step (endpoints, vertices, phi) then M-step (motions, L, K, precisions).
 
     Parameters
@@ -552,11 +558,14 @@ def em_sweep(st: StickState, obs: Observations, priors: Priors, *, precisions: b
     global_rotations : bool
         Use the multi-start rotation search (:func:`best_rotations`) in this sweep
         (with the SVD start when ``use_polar``).
+    hold : ndarray of bool, shape (S, F), optional
+        Rotations not to update (see :func:`update_motions`).
     """
     update_endpoints(st)
     update_vertices(st)
     update_phi(st, priors)
-    update_motions(st, obs, n_procrustes=n_procrustes, global_search=global_rotations, use_polar=use_polar)
+    update_motions(st, obs, n_procrustes=n_procrustes, global_search=global_rotations, use_polar=use_polar,
+                   hold=hold)
     if local:
         update_local(st, obs, priors)
         update_ends(st, priors)

@@ -1,0 +1,249 @@
+"""Method "em" (Ross, Tarlow & Zemel): structure, imputation, time and memory.
+
+Cases
+-----
+em-structure-random3d
+    Random 3D figures (``synthetic.random_figure``: 3-7 sticks, 90-180 frames,
+    5-9 points per stick, 1% noise, random views), end to end: ARI,
+    misclassification, edge F1, exact-structure rate (mean over figures).
+em-imputation-synthetic
+    The paper's imputation comparison (Figs. 4 and 6, bottom right) on random
+    figures: learn on the first 70% of the frames, occlude the rest (a sweeping
+    bar plus 5% at random, ``synthetic.occlude``), re-fit and predict the hidden
+    points; RMSE of em, multibody-sfm and sfm. Three training conditions: clean,
+    occluded like the test frames, and 75% of the training observations
+    withheld at random (the paper's robustness claim).
+em-imputation-mocap
+    The same protocol on motion capture projected to 2D (isometric view): the CMU
+    41-marker take and the HDM05 take from the data directory, 30 Hz.
+em-structure-mocap
+    The CMU take: ARI of the sticks against the marker-set body segments, edges.
+em-speed
+    Time and peak memory of the whole pipeline (initialisation, EM, every merge
+    stage) for an excavator-sized problem (35 points x 176 frames, 5 sticks) and
+    a human-sized one (53 points x 1018 frames), and the human-sized problem at
+    half its frames (memory should scale linearly with frames). ``ctx.full``
+    adds the human-sized run with the paper's fixed iteration counts.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import numpy as np
+
+import stickfigure as sf
+from stickfigure.models import get_method
+from stickfigure.trajectories import Trajectories
+
+from .run import Case, Context
+
+BASELINES = ("em", "multibody-sfm", "sfm")
+
+
+# ------------------------------------------------------------------ scoring
+def _score(skel: sf.Skeleton, traj: Trajectories) -> dict[str, Any]:
+    try:
+        from stickfigure.metrics import score_skeleton
+    except ImportError:  # the shared metrics module has not landed: score here, and say so
+        return {**_local_score(skel, traj), "notes": "local scoring (stickfigure.metrics missing)"}
+    s = score_skeleton(skel, traj)
+    return {k: s.get(k) for k in ("ari", "misclassification", "edge_f1", "exact")}
+
+
+def _local_score(skel: sf.Skeleton, traj: Trajectories) -> dict[str, Any]:
+    from scipy.optimize import linear_sum_assignment
+    from sklearn.metrics import adjusted_rand_score
+
+    lt, lp = traj.labels_true, skel.labels
+    ok = lt >= 0
+    ari = float(adjusted_rand_score(lt[ok], lp[ok]))
+    C = np.zeros((lp.max() + 1, lt.max() + 1))
+    np.add.at(C, (lp[ok], lt[ok]), 1)
+    r, c = linear_sum_assignment(-C)
+    mis = 1.0 - C[r, c].sum() / ok.sum()
+    major = {s: int(np.argmax(C[s])) for s in range(C.shape[0])}
+    pred = {tuple(sorted((major[a], major[b]))) for a, b in skel.edges if major[a] != major[b]}
+    true = {tuple(sorted(e)) for e in traj.edges_true or []}
+    tp = len(pred & true)
+    f1 = 0.0 if tp == 0 else 2 * tp / (len(skel.edges) + len(true))
+    return {"ari": ari, "misclassification": float(mis), "edge_f1": f1, "exact": bool(ari == 1.0 and f1 == 1.0)}
+
+
+def _mean(rows: list[dict[str, Any]], keys: tuple[str, ...]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k in keys:
+        vals = [float(r[k]) for r in rows if r.get(k) is not None]
+        if vals:
+            out[k] = float(np.mean(vals))
+    return out
+
+
+def _random_figures(ctx: Context, n_quick: int = 8, n_full: int = 20) -> Iterator[tuple[int, Trajectories]]:
+    for k in range(n_full if ctx.full else n_quick):
+        seed = ctx.seed * 1000 + k
+        rng = np.random.default_rng(20_000 + seed)
+        yield seed, sf.synthetic.random_figure(n_sticks=int(rng.integers(3, 8)), frames=int(rng.integers(90, 181)),
+                                               noise=0.01, seed=seed, points_per_stick=(5, 9))
+
+
+# ------------------------------------------------------------------ structure
+def case_structure_random3d(ctx: Context) -> Iterator[dict[str, Any]]:
+    rows, notes = [], set()
+    for seed, traj in _random_figures(ctx):
+        skel, timing = ctx.measure(lambda: sf.fit(traj, method="em", random_state=seed))
+        s = _score(skel, traj)
+        notes.add(s.pop("notes", ""))
+        rows.append({**s, **timing})
+    yield {"dataset": "random_figure 3D", "method": "em",
+           **_mean(rows, ("ari", "misclassification", "edge_f1", "exact", "time_s", "time_ratio", "peak_mb")),
+           "notes": f"mean of {len(rows)} figures (3-7 sticks, 90-180 frames, 5-9 pts/stick, 1% noise) "
+                    + " ".join(n for n in notes if n)}
+
+
+# ----------------------------------------------------------------- imputation
+def _withhold(traj: Trajectories, fraction: float, seed: int) -> Trajectories:
+    """Hide ``fraction`` of the observations at random, keeping every point seen at least twice."""
+    rng = np.random.default_rng(seed)
+    xy = traj.xy.copy()
+    obs = traj.observed
+    hide = obs & (rng.random(obs.shape) < fraction)
+    for p in np.flatnonzero((obs & ~hide).sum(axis=1) < 2):  # a point must stay observable
+        keep = rng.choice(np.flatnonzero(obs[p]), size=min(2, obs[p].sum()), replace=False)
+        hide[p, keep] = False
+    xy[hide] = np.nan
+    return traj.with_xy(xy, allow_unobserved=False)
+
+
+def _protocol(traj: Trajectories, method: str, seed: int, condition: str, fit_kw: dict[str, Any]
+              ) -> tuple[float, sf.Skeleton]:
+    """Held-out imputation RMSE (in the data's units) of one method."""
+    train, test = traj.split(0.7)
+    if condition == "train occluded":
+        train, _ = sf.synthetic.occlude(train, seed=seed + 1)
+        train = train.drop_unobserved() if (~train.observed.any(axis=1)).any() else train
+    elif condition == "train 75% withheld":
+        train = _withhold(train, 0.75, seed + 2)
+    occluded, hidden = sf.synthetic.occlude(test, seed=seed)
+    if train.n_points != traj.n_points:  # a point never seen in training cannot be imputed by any method
+        keep = np.isin(np.arange(traj.n_points), np.flatnonzero(traj.slice(frames=slice(0, train.n_frames))
+                                                                 .observed.any(axis=1)))
+        occluded, hidden, test = occluded.slice(points=keep), hidden[keep], test.slice(points=keep)
+    skel = sf.fit(train, method=method, random_state=seed, **fit_kw)
+    filled = np.asarray(get_method(method).impute_skeleton(skel, occluded), dtype=float)
+    d = filled[hidden] - test.xy[hidden]
+    return float(np.sqrt(np.mean(np.sum(d * d, axis=-1)))), skel
+
+
+def _imputation_rows(ctx: Context, dataset: str, scenes: list[tuple[int, Trajectories]],
+                     conditions: tuple[str, ...], em_kw: Callable[[Trajectories], dict[str, Any]] | None = None
+                     ) -> Iterator[dict[str, Any]]:
+    for condition in conditions:
+        per: dict[str, list[float]] = {m: [] for m in BASELINES}
+        timing_em: list[dict[str, float]] = []
+        failures: dict[str, str] = {}
+        for seed, traj in scenes:
+            for m in BASELINES:
+                kw = em_kw(traj) if (m == "em" and em_kw) else {}
+                try:
+                    (rmse, _), t = ctx.measure(lambda: _protocol(traj, m, seed, condition, kw))
+                except Exception as exc:  # a failure is a result, not a crash of the table
+                    failures[m] = f"{type(exc).__name__}: {exc}"
+                    per[m].append(np.nan)
+                    continue
+                per[m].append(rmse)
+                if m == "em":
+                    timing_em.append(t)
+        em, mb, s1 = (np.array(per[m]) for m in BASELINES)
+        ok = np.isfinite(em) & np.isfinite(mb) & np.isfinite(s1)
+        for m, vals in zip(BASELINES, (em, mb, s1)):
+            row = {"dataset": f"{dataset} ({condition})", "method": m, "rmse": float(np.nanmean(vals))}
+            if m == "em" and ok.any():
+                row.update(_mean(timing_em, ("time_s", "time_ratio", "peak_mb")))
+                row["notes"] = (f"{len(scenes)} scenes; em below multibody-sfm on {np.mean(em[ok] < mb[ok]):.0%}, "
+                                f"below sfm on {np.mean(em[ok] < s1[ok]):.0%}; mean RMSE em/multibody "
+                                f"{np.mean(em[ok]) / np.mean(mb[ok]):.2f}")
+            if m in failures:
+                row["notes"] = (row.get("notes", "") + f" failed: {failures[m]}").strip()
+            yield row
+
+
+def case_imputation_synthetic(ctx: Context) -> Iterator[dict[str, Any]]:
+    scenes = list(_random_figures(ctx, n_quick=6, n_full=20))
+    yield from _imputation_rows(ctx, "random_figure 3D", scenes, ("train clean", "train occluded",
+                                                                  "train 75% withheld"))
+
+
+def _mocap(ctx: Context) -> list[tuple[str, Trajectories]]:
+    assert ctx.data_dir is not None
+    out = []
+    for name in ("85_02.c3d", "HDM_dg_06-03_03_120.c3d"):
+        path = Path(ctx.data_dir) / "mocap" / name
+        if not path.exists():
+            continue
+        traj = sf.load(path).drop_unobserved()
+        step = max(1, int(round((traj.frame_rate or 120.0) / 30.0)))
+        traj = traj.subsample(step).project("isometric")
+        if not ctx.full and traj.n_frames > 240:
+            traj = traj.slice(frames=slice(0, 240))
+        out.append((name, traj))
+    return out
+
+
+def case_imputation_mocap(ctx: Context) -> Iterator[dict[str, Any]]:
+    for k, (name, traj) in enumerate(_mocap(ctx)):
+        yield from _imputation_rows(ctx, f"{name} isometric 30 Hz", [(ctx.seed + k, traj)],
+                                    ("train clean", "train occluded", "train 75% withheld"))
+
+
+def case_structure_mocap(ctx: Context) -> Iterator[dict[str, Any]]:
+    for name, traj in _mocap(ctx):
+        if traj.labels_true is None:
+            continue
+        skel, timing = ctx.measure(lambda: sf.fit(traj, method="em", random_state=ctx.seed))
+        s = _score(skel, traj)
+        parts = traj.part_names or []
+        named = []
+        for a, b in skel.edges:
+            ma = np.bincount(traj.labels_true[skel.labels == a][traj.labels_true[skel.labels == a] >= 0]).argmax()
+            mb = np.bincount(traj.labels_true[skel.labels == b][traj.labels_true[skel.labels == b] >= 0]).argmax()
+            named.append(f"{parts[ma] if ma < len(parts) else ma}-{parts[mb] if mb < len(parts) else mb}")
+        yield {"dataset": f"{name} isometric 30 Hz", "method": "em", **s, **timing,
+               "notes": f"{skel.n_sticks} sticks; edges (majority part): {', '.join(named)}"}
+
+
+# ---------------------------------------------------------------------- speed
+def _sized(n_points: int, frames: int, n_sticks: int, seed: int) -> Trajectories:
+    per = n_points // n_sticks
+    traj = sf.synthetic.random_figure(n_sticks=n_sticks, frames=frames, noise=0.01, seed=seed,
+                                      points_per_stick=(per, per + 1))
+    return traj.slice(points=slice(0, n_points)) if traj.n_points > n_points else traj
+
+
+def case_speed(ctx: Context) -> Iterator[dict[str, Any]]:
+    cases = [("excavator-sized 35x176, 5 sticks", _sized(35, 176, 5, ctx.seed), {}),
+             ("human-sized 53x509, 11 sticks", _sized(53, 509, 11, ctx.seed), {}),
+             ("human-sized 53x1018, 11 sticks", _sized(53, 1018, 11, ctx.seed), {})]
+    if ctx.full:
+        cases.append(("human-sized 53x1018, paper iteration counts", cases[-1][1], {"tol": 0.0}))
+    for name, traj, kw in cases:
+        skel, timing = ctx.measure(lambda: sf.fit(traj, method="em", random_state=ctx.seed, **kw))
+        s = _score(skel, traj)
+        yield {"dataset": name, "method": "em", **s, **timing,
+               "notes": f"{traj.n_points} points x {traj.n_frames} frames; {len(skel.info['stages']) - 1} merges; "
+                        f"includes the initial clustering"}
+        # The same without the initial clustering (given groups), to separate em's own cost.
+        skel, timing = ctx.measure(lambda: sf.fit(traj, method="em", random_state=ctx.seed,
+                                                  labels=traj.labels_true, **kw))
+        yield {"dataset": name + ", groups given", "method": "em", **_score(skel, traj), **timing,
+               "notes": "em alone (true groups as the start)"}
+
+
+CASES = [
+    Case("em-structure-random3d", case_structure_random3d),
+    Case("em-imputation-synthetic", case_imputation_synthetic),
+    Case("em-imputation-mocap", case_imputation_mocap, needs_data=True),
+    Case("em-structure-mocap", case_structure_mocap, needs_data=True),
+    Case("em-speed", case_speed),
+]
