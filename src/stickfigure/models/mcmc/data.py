@@ -35,7 +35,7 @@ from .state import Data, State
 __all__ = ["TARGET_REACH", "rigid_part_size", "normalise", "initial_imputation", "initial_state"]
 
 #: Median rigid reach of the points, in model units, after normalisation.
-TARGET_REACH = 0.4
+TARGET_REACH = 0.33
 
 
 def _group_rms(Z: np.ndarray, W: np.ndarray) -> np.ndarray:

@@ -26,8 +26,9 @@ class StickMCMC(StickEstimator):
     """Stick figures by MCMC under the nonparametric tree prior of Meeds et al.
 
     The posterior over segmentations, trees and stick motions is sampled by
-    several chains (:mod:`.sampler`); the result is the most probable sample
-    (highest log-joint) as a :class:`~stickfigure.skeleton.Skeleton`, with the
+    several chains (:mod:`.sampler`); the result is the most probable structure
+    (the most frequent segmentation and tree among the kept draws, represented by
+    its draw of highest log-joint) as a :class:`~stickfigure.skeleton.Skeleton`, with the
     posterior samples, traces and diagnostics in its ``state`` and ``info``.
 
     Parameters
@@ -333,15 +334,50 @@ def _depth(parent: np.ndarray, k: int) -> int:
     return d
 
 
+def _most_probable_structure(chains: list[dict[str, Any]], lj: np.ndarray) -> tuple[int, float]:
+    """The draw representing the most frequent structure, and that structure's posterior frequency.
+
+    A structure is the label-free configuration (node sets and parent links).
+    The single draw of highest log-joint is a poor guide to where the posterior
+    mass is (a mode with more parameters can reach higher densities yet hold
+    less mass), so we count structures over all kept draws and return the
+    highest-log-joint draw among those of the most frequent one.
+
+    Returns
+    -------
+    flat : int
+        Index into the chains' draws laid end to end.
+    frequency : float
+    """
+    from .prior import canonical_key
+
+    D = lj.shape[1]
+    keys = []
+    for ch in chains:
+        for d in range(D):
+            K = int((ch["parent"][d] > -2).sum())
+            keys.append(canonical_key(ch["c"][d], ch["parent"][d, :K]))
+    flat_lj = lj.ravel()
+    counts: dict = {}
+    for t, k in enumerate(keys):
+        counts[k] = counts.get(k, 0) + 1
+    top = max(counts.values())
+    if top == 1:  # every draw differs: fall back on the highest log-joint
+        return int(np.argmax(flat_lj)), 1.0 / len(keys)
+    cands = [k for k, v in counts.items() if v == top]
+    best = max((t for t, k in enumerate(keys) if k in cands), key=lambda t: flat_lj[t])
+    return int(best), top / len(keys)
+
+
 def _build_skeleton(traj: Trajectories, chains: list[dict[str, Any]], hyper: Hyper, centre: np.ndarray,
                     scale: float, noise: float, max_stored: int, rng: np.random.Generator) -> Skeleton:
-    """The MAP sample as a Skeleton, with all samples, traces and diagnostics attached."""
+    """The most probable structure as a Skeleton, with all samples, traces and diagnostics attached."""
     P, F = traj.n_points, traj.n_frames
     C = len(chains)
     lj = np.stack([ch["log_joint"] for ch in chains])  # (C, D)
     ns = np.stack([ch["n_sticks"] for ch in chains])
     D = lj.shape[1]
-    flat = int(np.argmax(lj))
+    flat, freq = _most_probable_structure(chains, lj)
     cm, dm = divmod(flat, D)
     best = chains[cm]
     # Every draw's structure, and the per-frame parameters of an even subset.
@@ -410,7 +446,7 @@ def _build_skeleton(traj: Trajectories, chains: list[dict[str, Any]], hyper: Hyp
         "ess": conv["ess"],
         "acceptance": [{k: round(v, 4) for k, v in ch["acceptance"].items()} for ch in chains],
         "map": {"chain": cm, "draw": dm, "log_joint": float(lj[cm, dm]), "n_sticks": k_map,
-                "sample": int(np.searchsorted(keep, flat))},
+                "sample": int(np.searchsorted(keep, flat)), "structure_frequency": freq},
         "scale": float(scale),
         "centre": [float(centre[0]), float(centre[1])],
         "noise": float(noise) if np.isfinite(noise) else None,

@@ -111,6 +111,11 @@ class SweepConfig:
         Update indicators and the tree (False keeps them fixed: imputation on new frames).
     likelihood : bool
         Include the data (False samples the prior; used by the tests).
+    beta_tree : float
+        Power (<= 1) applied to the posterior ratio in the tree moves (sub-tree,
+        path reversal, swap, re-hang). Below 1 only during burn-in, where it
+        lets a chain leave a tree described from the wrong end (see
+        :mod:`.sampler`); the sampled posterior is always at 1.
     """
 
     n_aux: int = 5
@@ -119,6 +124,7 @@ class SweepConfig:
     n_subtree: int = 2
     structure: bool = True
     likelihood: bool = True
+    beta_tree: float = 1.0
 
 
 @dataclass
@@ -150,10 +156,6 @@ def node_loglik_matrix(st: State, x: np.ndarray, likelihood: bool = True) -> np.
 
 def _log_sigmoid(d: float) -> float:
     return -math.log1p(math.exp(-d)) if d >= 0 else d - math.log1p(math.exp(d))
-
-
-def _gumbel_argmax(logw: np.ndarray, rng: np.random.Generator) -> int:
-    return int(np.argmax(logw + rng.gumbel(size=logw.shape)))
 
 
 # ----------------------------------------------------------------- indicators
@@ -212,7 +214,9 @@ def gibbs_indicators(st: State, data: Data, hyper: Hyper, rng: np.random.Generat
         a_th[s, m], a_T[s, m], a_pr[s, m] = t1[0, 0], T1[0, 0], p1[0, 0]
         AUX[:, s, m] = _loglik(x, t1[0, 0], T1[0, 0], p1[0, 0, 0], p1[0, 0, 1], p1[0, 0, 2], cfg.likelihood)
 
-    for i in rng.permutation(I):
+    order = rng.permutation(I)
+    uniforms = rng.random(I)
+    for i, u in zip(order.tolist(), uniforms.tolist()):
         k = int(st.c[i])
         if n[k] == 1 and nchild[k] > 0:
             continue  # internal singleton: its point cannot leave
@@ -231,16 +235,19 @@ def gibbs_indicators(st: State, data: Data, hyper: Hyper, rng: np.random.Generat
                 nchild[p] -= 1
         occ = n > 0
         Kp = int(occ.sum())
-        logr = np.zeros_like(N)
-        pos = N > 0
-        logr[pos] = np.log(N[pos] / (N[pos] + 1.0))
+        # log N/(N+1) for occupied sub-trees (0 where empty, which only a removed leaf is)
+        logr = np.where(N > 0, -np.log1p(1.0 / np.maximum(N, 1.0)), 0.0)
         logpath = A @ logr
-        lw_exist = np.where(occ, np.log(n + 1.0) + logpath + LL[i], -np.inf)
-        slot_ok = np.concatenate([[True], occ])
-        slot_lp = np.concatenate([[0.0], logpath])
+        lw = np.empty(K + (K + 1) * M)
+        lw[:K] = np.where(occ, np.log1p(n) + logpath + LL[i], -np.inf)
         base = log_lam - math.log(Kp + 1.0) - log_M
-        lw_new = np.where(slot_ok[:, None], base + slot_lp[:, None] + AUX[i], -np.inf)
-        choice = _gumbel_argmax(np.concatenate([lw_exist, lw_new.ravel()]), rng)
+        lw_new = lw[K:].reshape(K + 1, M)
+        lw_new[0] = base + AUX[i, 0]
+        lw_new[1:] = np.where(occ[:, None], (base + logpath)[:, None] + AUX[i, 1:], -np.inf)
+        # Inverse-CDF draw from the normalised weights.
+        w = np.exp(lw - lw.max())
+        cw = np.cumsum(w)
+        choice = min(int(np.searchsorted(cw, u * cw[-1], side="right")), lw.size - 1)
         if choice < K:
             j = choice
             st.c[i] = j
@@ -581,7 +588,8 @@ def split_merge(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, c
                 stats: MoveStats | None = None, current: float | None = None) -> tuple[State, float]:
     """One Metropolis-Hastings split or merge proposal (after Jain & Neal's non-conjugate scheme).
 
-    Two distinct points ``i`` and ``j`` are drawn uniformly. If they share node ``k``
+    Two distinct points ``i`` and ``j`` are drawn (:func:`_choose_pair`: uniformly, or
+    ``j`` from the neighbourhood of ``i``'s node). If they share node ``k``
     a split is proposed, of one of three kinds chosen uniformly: siblings (A and
     B both children of k's parent), chain down (B a child of A) or chain up (A a
     child of B, which takes k's place); A holds ``i``, B holds ``j``. Otherwise, if
@@ -619,7 +627,7 @@ def split_merge(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, c
     I = data.n_points
     if I < 2:
         return st, current
-    i, j = (int(v) for v in rng.choice(I, size=2, replace=False))
+    i, j = _choose_pair(st, rng)
     ci, cj = int(st.c[i]), int(st.c[j])
     if ci == cj:
         return _propose_split(st, data, hyper, rng, cfg, stats, i, j, ci, current)
@@ -632,6 +640,47 @@ def split_merge(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, c
     else:
         return st, current
     return _propose_merge(st, data, hyper, rng, cfg, stats, i, j, ci, cj, kind, current)
+
+
+def _pair_pool(st: State, i: int) -> np.ndarray:
+    """Points of i's node and of its parent, children and siblings, i excluded."""
+    k = st.c[i]
+    near = (st.parent == k) | (st.parent == st.parent[k])
+    if st.parent[k] >= 0:
+        near[st.parent[k]] = True
+    near[k] = True
+    pool = np.flatnonzero(near[st.c])
+    return pool[pool != i]
+
+
+def _pair_logprob(st: State, i: int, j: int) -> float:
+    """log probability that :func:`_choose_pair` picks the ordered pair (i, j) in ``st``."""
+    I = st.c.shape[0]
+    pool = _pair_pool(st, i)
+    if pool.size == 0:
+        local = 1.0 / (I - 1)
+    else:
+        local = (1.0 / pool.size) if np.any(pool == j) else 0.0
+    return math.log(0.5 / (I * (I - 1)) + 0.5 * local / I)
+
+
+def _choose_pair(st: State, rng: np.random.Generator) -> tuple[int, int]:
+    """An ordered pair of points: half the time uniform, half the time j near i in the tree.
+
+    Drawing j among the points of i's node and its neighbours makes merges of
+    adjacent nodes (and splits of one node) far more frequent than uniform
+    pairs do; the probability of the pair in both states enters the ratio.
+    """
+    I = st.c.shape[0]
+    if rng.random() < 0.5:
+        i, j = (int(v) for v in rng.choice(I, size=2, replace=False))
+        return i, j
+    i = int(rng.integers(I))
+    pool = _pair_pool(st, i)
+    if pool.size == 0:
+        j = int(rng.integers(I - 1))
+        return i, j + (j >= i)
+    return i, int(pool[rng.integers(pool.size)])
 
 
 def _propose_split(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg: SweepConfig,
@@ -658,7 +707,8 @@ def _propose_split(st: State, data: Data, hyper: Hyper, rng: np.random.Generator
     if kind == "up":
         new.parent[k] = b
     proposed = _target(new, data, hyper, cfg)
-    log_ratio = proposed - current - math.log(1.0 / 3.0) - lq_c - lq_h - lq_ab + lq_m
+    log_ratio = (proposed - current - math.log(1.0 / 3.0) - lq_c - lq_h - lq_ab + lq_m
+                 + _pair_logprob(new, i, j) - _pair_logprob(st, i, j))
     ok = math.log(rng.random()) < log_ratio
     if stats is not None:
         stats.add(f"split_{kind}", ok)
@@ -700,7 +750,8 @@ def _propose_merge(st: State, data: Data, hyper: Hyper, rng: np.random.Generator
     _, lq_h = _children_assign(pair, mA, mB, hyper, rng, target=to_b)
     _, _, lq_ab = _pair_proposal(x[a_pts], x[b_pts], pair, to_b, hyper, rng, target=(_phi(st, a), _phi(st, b)))
     log_u = math.log(rng.random())
-    bound = proposed - current + math.log(1.0 / 3.0) + lq_h + lq_ab - lq_m
+    bound = (proposed - current + math.log(1.0 / 3.0) + lq_h + lq_ab - lq_m
+             + _pair_logprob(new, i, j) - _pair_logprob(st, i, j))
     ok = False
     if log_u < bound:
         _, lq_c, _, _ = _restricted_scans(x, i, j, S, pair, hyper, cfg, rng, target=in_b)
@@ -724,7 +775,7 @@ def _target(st: State, data: Data, hyper: Hyper, cfg: SweepConfig) -> float:
 
 # ------------------------------------------------------------- sub-tree move
 def subtree_move(st: State, data: Data, hyper: Hyper, rng: np.random.Generator,
-                 stats: MoveStats | None = None) -> None:
+                 stats: MoveStats | None = None, beta: float = 1.0) -> None:
     """Metropolis-Hastings re-attachment of a sub-tree (section 3.1.3).
 
     The sub-tree root r is chosen in proportion to its number of points and its
@@ -757,7 +808,7 @@ def subtree_move(st: State, data: Data, hyper: Hyper, rng: np.random.Generator,
     old_tree = log_tree_prior(n, st.parent, st.lam, A)
     st.parent[r] = p_new
     new_tree = log_tree_prior(n, st.parent, st.lam)
-    log_ratio = new_tree - old_tree + g(p_new) - g(p_old)
+    log_ratio = beta * (new_tree - old_tree + g(p_new) - g(p_old))
     ok = math.log(rng.random()) < log_ratio
     if not ok:
         st.parent[r] = p_old
@@ -766,7 +817,7 @@ def subtree_move(st: State, data: Data, hyper: Hyper, rng: np.random.Generator,
 
 
 def reverse_path(st: State, data: Data, hyper: Hyper, rng: np.random.Generator,
-                 stats: MoveStats | None = None) -> State:
+                 stats: MoveStats | None = None, beta: float = 1.0) -> State:
     """Metropolis-Hastings reversal of the path from a root child down to a leaf.
 
     A chain can be described from either end: a stick attached at its proximal
@@ -801,7 +852,7 @@ def reverse_path(st: State, data: Data, hyper: Hyper, rng: np.random.Generator,
             others = others[others != path[q + 1]]
             new.parent[others] = path[q + 1]
     # The likelihood is invariant: compare priors only.
-    log_ratio = _prior_target(new, hyper) - _prior_target(st, hyper)
+    log_ratio = beta * (_prior_target(new, hyper) - _prior_target(st, hyper))
     ok = math.log(rng.random()) < log_ratio
     if stats is not None:
         stats.add("reverse_path", ok)
@@ -841,10 +892,17 @@ def rehang_move(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, c
     new.parent[r] = p_new
     _set_phi(new, r, phi)
     proposed = _target(new, data, hyper, cfg)
-    ok = math.log(rng.random()) < proposed - current + lr - lq
+    ok = math.log(rng.random()) < cfg.beta_tree * (proposed - current) + lr - lq
     if stats is not None:
         stats.add("rehang", ok)
     return (new, proposed) if ok else (st, current)
+
+
+def _reassign(kids_theta: np.ndarray, kids_T: np.ndarray, phi_a: tuple, phi_b: tuple, hyper: Hyper,
+              rng: np.random.Generator, target: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """Give each child to node a or b with probabilities from its prior under each; log probability."""
+    pair = _Pair("sib", None, 1.0, kids_theta, kids_T)
+    return _children_assign(pair, phi_a, phi_b, hyper, rng, target)
 
 
 def swap_move(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg: SweepConfig,
@@ -852,14 +910,15 @@ def swap_move(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg
     """Metropolis-Hastings swap of a parent and its child, both re-proposed.
 
     An edge ``p -> c`` is chosen uniformly; ``c`` takes ``p``'s place under ``p``'s parent
-    and ``p`` hangs from ``c``'s distal end; each keeps its other children. Both nodes'
-    parameters are drawn from the data-driven node proposal (:func:`_node_proposal`),
-    ``c`` first, then ``p`` under the proposed ``c``. The reverse move is the same
-    kind of swap on the edge ``c -> p``, and the number of edges is unchanged, so
-    the acceptance ratio is the posterior ratio times the ratio of the two
-    parameter proposals. It lets a stick whose distal end sits between two
-    joints (both neighbours hanging from it) turn round and take its place in a
-    chain, which otherwise needs a long detour through worse states.
+    and ``p`` hangs from ``c``'s distal end. Both nodes' parameters are drawn from
+    the data-driven node proposal (:func:`_node_proposal`), ``c`` first, then ``p``
+    under the proposed ``c``; the other children of both are then shared out
+    between them with probabilities from their priors under the proposed
+    parameters. The reverse move is the same kind of swap on the edge
+    ``c -> p`` and the number of edges is unchanged, so the acceptance ratio is the
+    posterior ratio times the ratio of the proposal densities. It lets a stick
+    turn round and take its place in a chain (with its neighbours' children
+    following), which otherwise needs a long detour through worse states.
     """
     if current is None:
         current = _target(st, data, hyper, cfg)
@@ -874,22 +933,25 @@ def swap_move(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg
     kids_c = st.children(c)
     kids_p = st.children(p)
     kids_p = kids_p[kids_p != c]
+    others = np.concatenate([kids_p, kids_c])
+    none = np.zeros((0, st.T.shape[1]), complex)
     xc, xp = x[st.c == c], x[st.c == p]
-    toward_c = xp.mean(0) if J_g is None else None
-    phi_c, lq_c = _node_proposal(xc, J_g, s_g, st.T[kids_c], hyper, rng, toward=toward_c)
-    phi_p, lq_p = _node_proposal(xp, distal_end(phi_c[0], phi_c[1], phi_c[3]), phi_c[5], st.T[kids_p], hyper, rng)
-    toward_p = xc.mean(0) if J_g is None else None
+    phi_c, lq_c = _node_proposal(xc, J_g, s_g, none, hyper, rng, toward=xp.mean(0) if J_g is None else None)
+    phi_p, lq_p = _node_proposal(xp, distal_end(phi_c[0], phi_c[1], phi_c[3]), phi_c[5], none, hyper, rng)
+    to_p, lq_h = _reassign(st.theta[others], st.T[others], phi_c, phi_p, hyper, rng)
     old_p, old_c = _phi(st, p), _phi(st, c)
-    _, lr_p = _node_proposal(xp, J_g, s_g, st.T[kids_p], hyper, rng, target=old_p, toward=toward_p)
-    _, lr_c = _node_proposal(xc, distal_end(old_p[0], old_p[1], old_p[3]), old_p[5], st.T[kids_c], hyper, rng,
-                             target=old_c)
+    _, lr_p = _node_proposal(xp, J_g, s_g, none, hyper, rng, target=old_p, toward=xc.mean(0) if J_g is None else None)
+    _, lr_c = _node_proposal(xc, distal_end(old_p[0], old_p[1], old_p[3]), old_p[5], none, hyper, rng, target=old_c)
+    was_c = np.concatenate([np.zeros(kids_p.size, bool), np.ones(kids_c.size, bool)])
+    _, lr_h = _reassign(st.theta[others], st.T[others], old_p, old_c, hyper, rng, target=was_c)
     new = st.copy()
     new.parent[c] = g
     new.parent[p] = c
+    new.parent[others] = np.where(to_p, p, c)
     _set_phi(new, c, phi_c)
     _set_phi(new, p, phi_p)
     proposed = _target(new, data, hyper, cfg)
-    log_ratio = proposed - current + lr_p + lr_c - lq_c - lq_p
+    log_ratio = cfg.beta_tree * (proposed - current) + lr_p + lr_c + lr_h - lq_c - lq_p - lq_h
     ok = math.log(rng.random()) < log_ratio
     if stats is not None:
         stats.add("swap", ok)
@@ -1193,8 +1255,8 @@ def sweep(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg: Sw
         for _ in range(cfg.n_split_merge):
             st, current = split_merge(st, data, hyper, rng, cfg, stats, current)
         for _ in range(cfg.n_subtree):
-            subtree_move(st, data, hyper, rng, stats)
-            st = reverse_path(st, data, hyper, rng, stats)
+            subtree_move(st, data, hyper, rng, stats, cfg.beta_tree)
+            st = reverse_path(st, data, hyper, rng, stats, cfg.beta_tree)
             st, _ = swap_move(st, data, hyper, rng, cfg, stats)
             st, _ = rehang_move(st, data, hyper, rng, cfg, stats)
     update_translations(st, data, hyper, rng, lik)

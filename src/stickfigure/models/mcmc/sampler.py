@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -39,6 +39,10 @@ class ChainSettings:
     init_clusters : int
         Number of k-means clusters of the starting state (0: one per ``init_size`` points).
     init_size : int
+    anneal : float
+        Fraction of the burn-in over which the tree moves' power rises from
+        ``beta0`` to 1 (0: no annealing).
+    beta0 : float
     """
 
     n_sweeps: int = 600
@@ -46,6 +50,8 @@ class ChainSettings:
     thin: int = 2
     init_clusters: int = 0
     init_size: int = 4
+    anneal: float = 0.8
+    beta0: float = 0.01
 
 
 def _record(st: State, data: Data) -> dict[str, Any]:
@@ -104,9 +110,14 @@ def run_chain(z: np.ndarray, hyper: Hyper, cfg: SweepConfig, settings: ChainSett
         from tqdm.auto import tqdm
 
         bar = tqdm(total=n, desc=f"chain {chain_id}", position=chain_id, leave=True, mininterval=0.5)
+    n_anneal = int(settings.anneal * settings.burn_in)
     try:
         for s in range(n):
-            st = sweep(st, data, hyper, rng, cfg, stats)
+            # Burn-in only: tempered tree moves let a chain turn a tree described from the
+            # wrong end (a valley of tens of nats between two good descriptions).
+            beta = settings.beta0 + (1.0 - settings.beta0) * s / n_anneal if s < n_anneal else 1.0
+            step_cfg = cfg if beta == 1.0 else replace(cfg, beta_tree=beta)
+            st = sweep(st, data, hyper, rng, step_cfg, stats if beta == 1.0 else None)
             tr_lj[s] = log_joint(st, data, hyper, observed=True)
             tr_k[s] = st.K
             tr_lam[s] = st.lam

@@ -1,0 +1,159 @@
+"""End-to-end behaviour of method "mcmc": results, imputation, files, plots, bad input, known answers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from sklearn.metrics import adjusted_rand_score
+
+import stickfigure as sf
+from stickfigure.models.mcmc import StickMCMC
+from stickfigure.models.mcmc.data import normalise, rigid_part_size
+
+QUICK = dict(n_chains=2, n_sweeps=40, burn_in=20, thin=1, n_jobs=1)
+TINY = dict(n_chains=2, n_sweeps=12, burn_in=6, thin=1, n_jobs=1)
+
+
+@pytest.fixture(scope="module")
+def arm():
+    return sf.synthetic.arm(seed=0)
+
+
+@pytest.fixture(scope="module")
+def fitted(arm):
+    return StickMCMC(random_state=0, **QUICK).fit(arm)
+
+
+def test_registered_and_reachable():
+    assert "mcmc" in sf.available_methods()
+    assert sf.get_method("mcmc") is StickMCMC
+
+
+def test_result_shapes_and_contents(fitted, arm):
+    sk = fitted.skeleton_
+    P, F, _ = arm.shape
+    S = sk.n_sticks
+    assert sk.method == "mcmc" and sk.labels.shape == (P,)
+    assert sk.motions.shape == (S, F, 2, 4) and sk.local.shape == (P, 3)
+    np.testing.assert_allclose(sk.local[:, 2], 0.0)
+    # A = [R | 0]: rotations in the first two columns, zero third column.
+    A = sk.motions[..., :3]
+    np.testing.assert_allclose(A[..., 2], 0.0)
+    np.testing.assert_allclose(np.einsum("sfij,sfkj->sfik", A[..., :2], A[..., :2]), np.broadcast_to(np.eye(2), (S, F, 2, 2)),
+                               atol=1e-12)
+    assert sk.joints.shape == (len(sk.edges), F, 2)
+    # The motions reproduce the data to within a few noise levels.
+    assert np.sqrt(np.mean((sk.predict() - arm.xy) ** 2)) < 5 * arm.meta["noise_std"]
+    # Samples, traces and diagnostics.
+    D = sk.state["sample_c"].shape[0]
+    assert sk.state["sample_theta"].shape[0] == D and sk.state["trace_log_joint"].shape == (2, 40)
+    assert abs(sum(fitted.n_sticks_posterior_.values()) - 1.0) < 1e-12
+    assert set(fitted.diagnostics_) >= {"rhat", "ess", "acceptance"}
+    assert fitted.map_["n_sticks"] == S
+    assert set(fitted.samples_) >= {"c", "parent", "theta", "T", "prec", "y", "log_joint"}
+
+
+def test_joints_are_child_translation_points(fitted):
+    """Each edge's joint is the child's translation point: its motion's translation column."""
+    sk = fitted.skeleton_
+    for j, (p, c) in enumerate(sk.edges):
+        np.testing.assert_allclose(sk.joints[j], sk.motions[c, :, :, 3])
+
+
+def test_same_seed_same_result(arm):
+    a = StickMCMC(random_state=3, **TINY).fit(arm).skeleton_
+    b = StickMCMC(random_state=3, **TINY).fit(arm).skeleton_
+    np.testing.assert_array_equal(a.labels, b.labels)
+    np.testing.assert_allclose(a.state["trace_log_joint"], b.state["trace_log_joint"])
+
+
+def test_parallel_chains_match_serial(arm):
+    a = StickMCMC(random_state=5, **TINY).fit(arm).skeleton_
+    b = StickMCMC(random_state=5, **{**TINY, "n_jobs": 2}).fit(arm).skeleton_
+    np.testing.assert_allclose(a.state["trace_log_joint"], b.state["trace_log_joint"])
+
+
+def test_impute_new_frames_and_round_trip(fitted, arm, tmp_path):
+    sk = fitted.skeleton_
+    occ, hidden = sf.synthetic.occlude(arm, seed=1)
+    filled = sk.impute(occ)
+    assert filled.shape == arm.xy.shape and not np.isnan(filled).any()
+    np.testing.assert_array_equal(filled[~hidden], occ.xy[~hidden])
+    rmse = np.sqrt(np.mean((filled[hidden] - arm.xy[hidden]) ** 2))
+    assert rmse < 0.15  # sticks are 1 long; hidden entries are off by a small fraction of a stick
+    sk.save(tmp_path / "m.json")
+    back = sf.Skeleton.load(tmp_path / "m.json")
+    np.testing.assert_allclose(StickMCMC.impute_skeleton(back, occ), StickMCMC.impute_skeleton(sk, occ))
+
+
+def test_fit_with_missing_data(arm):
+    occ, hidden = sf.synthetic.occlude(arm, seed=2)
+    est = StickMCMC(random_state=1, **{**QUICK, "n_chains": 1}).fit(occ)
+    pred = est.skeleton_.state["predictive_mean"]
+    rmse = np.sqrt(np.mean((pred[hidden] - arm.xy[hidden]) ** 2))
+    assert rmse < 0.2
+
+
+def test_three_dimensional_input_is_refused():
+    walk = sf.synthetic.walker(seed=0, project=False)
+    with pytest.raises(ValueError, match="project"):
+        StickMCMC(**QUICK).fit(walk)
+
+
+@pytest.mark.parametrize("bad", [dict(n_chains=0), dict(n_sweeps=10, burn_in=10), dict(thin=0), dict(scale="big"),
+                                 dict(b_sx=-1.0), dict(init="many"), dict(kappa_rho=0.0), dict(n_jobs=0)])
+def test_bad_parameters(arm, bad):
+    with pytest.raises(ValueError):
+        StickMCMC(**{**QUICK, **bad}).fit(arm)
+
+
+def test_normalisation_finds_the_part_size(arm):
+    # Arm sticks are 1 long with points spread along them: the median rigid reach is ~0.75.
+    assert rigid_part_size(arm.xy) == pytest.approx(0.74, abs=0.1)
+    z, centre, scale, noise = normalise(arm.xy)
+    np.testing.assert_allclose(np.nanmean(z), 0.0, atol=1e-12)
+    assert noise * scale == pytest.approx(arm.meta["noise_std"], rel=0.3)
+    z2, _, scale2, _ = normalise(arm.xy * 10.0)
+    assert scale2 == pytest.approx(10 * scale)
+    np.testing.assert_allclose(z2, z, atol=1e-9)
+
+
+def test_plots(fitted, arm, tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from stickfigure.plot import mcmc as pm
+
+    out = pm.figure(fitted.skeleton_, arm, tmp_path / "mcmc.png")
+    assert out.exists() and out.stat().st_size > 10_000
+    gx = np.linspace(-4, 4, 30)
+    logd = pm.predictive_log_density(fitted.skeleton_, 5, gx, gx)
+    assert logd.shape == (30, 30) and np.isfinite(logd).any()
+    # The density is highest near the data.
+    pts = fitted.skeleton_.state["predictive_mean"][:, 5]
+    i = np.unravel_index(np.nanargmax(np.where(np.isfinite(logd), logd, -np.inf)), logd.shape)
+    best = np.array([gx[i[1]], gx[i[0]]])
+    assert np.min(np.linalg.norm(pts - best, axis=1)) < 0.5
+    with pytest.raises(ValueError, match="mcmc"):
+        pm.plot_traces(sf.Skeleton(method="sfm", labels=np.zeros(3, int), n_sticks=1))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", range(5))
+def test_arm_known_answer(seed):
+    """The paper's arm: the 4-stick chain, posterior mass on 3-4 sticks, chains agree."""
+    arm = sf.synthetic.arm(seed=seed)
+    est = StickMCMC(random_state=seed).fit(arm)
+    sk = est.skeleton_
+    assert adjusted_rand_score(arm.labels_true, sk.labels) >= 0.95
+    assert sk.n_sticks == 4 and len(sk.edges) == 3
+    post = est.n_sticks_posterior_
+    assert post.get(3, 0) + post.get(4, 0) > 0.5
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", range(4))
+def test_random_planar_figures(seed):
+    t = sf.synthetic.random_figure(n_sticks=3 + seed, frames=60, planar=True, seed=seed)
+    sk = StickMCMC(random_state=seed).fit(t).skeleton_
+    assert adjusted_rand_score(t.labels_true, sk.labels) >= 0.9
