@@ -215,10 +215,11 @@ def case_structure_mocap(ctx: Context) -> Iterator[dict[str, Any]]:
 
 # ---------------------------------------------------------------------- speed
 def _sized(n_points: int, frames: int, n_sticks: int, seed: int) -> Trajectories:
-    per = n_points // n_sticks
+    """A random 3D figure with exactly ``n_points`` points (the last stick may get fewer)."""
+    per = -(-n_points // n_sticks)
     traj = sf.synthetic.random_figure(n_sticks=n_sticks, frames=frames, noise=0.01, seed=seed,
-                                      points_per_stick=(per, per + 1))
-    return traj.slice(points=slice(0, n_points)) if traj.n_points > n_points else traj
+                                      points_per_stick=per)
+    return traj.slice(points=slice(0, n_points))
 
 
 def case_speed(ctx: Context) -> Iterator[dict[str, Any]]:

@@ -27,8 +27,8 @@ from ...trajectories import Trajectories
 from ..base import StickEstimator, register
 from .initialise import initial_state
 from .model import Observations, Priors, StickState, chain_degree, normalise
-from .structure import EMSettings, Stage, learn_structure, run_em, stick_edges
-from .updates import complete_rotation, procrustes_step, update_endpoints
+from .structure import EMSettings, Stage, learn_structure, stick_edges
+from .updates import complete_rotation, update_endpoints
 
 __all__ = ["EMSkeleton", "fit_stages"]
 
@@ -67,7 +67,8 @@ class EMSkeleton(StickEstimator):
         whole model (the paper; slow).
     max_candidates : int, optional
         Score only this many candidate merges per stage (those with the smallest
-        least-squares joint residual); all when None (the paper).
+        least-squares joint residual); all when None (the paper). The default 40
+        only bites on large figures.
     max_merges : int, optional
         Stop merging after this many merges; all valid merges when None.
     merge_baseline : bool
@@ -110,11 +111,11 @@ class EMSkeleton(StickEstimator):
     def __init__(self, n_iter: int = 200, n_iter_merge: int = 20, resample_every: int = 10,
                  resample: str = "sample", selection: str = "objective", n_ends: int = 3,
                  endpoint_init: str = "axis",
-                 merge_init: str = "joint", merge_scope: str = "local", max_candidates: int | None = None,
+                 merge_init: str = "joint", merge_scope: str = "local", max_candidates: int | None = 40,
                  max_merges: int | None = None, merge_baseline: bool = True, n_polish: int = 3,
                  reuse_scores: bool = True, tol: float = 1e-4, min_stick_points: int = 3,
                  max_sticks: int | None = None, labels: Any = None, refine_sticks: bool = True,
-                 tau_p: float = 1e-3,
+                 tau_p: float = 1.0,
                  alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e10, impute_iter: int = 100,
                  random_state: Any = None, progress: bool = False) -> None:
         self.n_iter = n_iter

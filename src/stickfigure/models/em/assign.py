@@ -84,7 +84,7 @@ def remove_sticks(st: StickState, drop: np.ndarray) -> StickState:
 
 
 def resample_assignments(st: StickState, obs: Observations, priors: Priors, rng: np.random.Generator, *,
-                         mode: str = "sample", min_points: int = 3) -> tuple[StickState, bool]:
+                         mode: str = "sample", min_points: int = 3) -> tuple[StickState, int]:
     """Redraw every point's stick; refit local coordinates; drop sticks that fall apart.
 
     Parameters
@@ -100,8 +100,8 @@ def resample_assignments(st: StickState, obs: Observations, priors: Priors, rng:
     -------
     state : StickState
         The updated state (a new object when sticks were removed).
-    changed : bool
-        Whether any assignment changed.
+    changed : int
+        How many points changed stick (0 when none).
     """
     S = st.n_sticks
     P = obs.n_points
@@ -131,7 +131,7 @@ def resample_assignments(st: StickState, obs: Observations, priors: Priors, rng:
         new[moving] = np.argmax(lp[moving], axis=1)
     else:
         drop = np.zeros(0, np.int64)
-    changed = bool(np.any(new != st.labels))
+    changed = int(np.sum(new != st.labels))
     out = st
     if changed:
         out = st.copy()

@@ -13,8 +13,9 @@ residual variance, robust to the sticks being tested):
   kept when ``(RSS_one - RSS_two) / (2 sigma^2) > k/2 log N`` with
   ``k = F (3 + D)`` the extra motion parameters and N the number of observed
   coordinates;
-* join: two sticks whose union, fitted as one rigid body, loses less than
-  ``k/2 log N`` in the same units are made one stick.
+* join: two sticks are made one when one stick's motion explains the other's
+  points (each point's local coordinates refitted) at a loss below ``k/2 log N``
+  in the same units.
 
 Both change only sticks without joints, before any merge, so the model is
 re-initialised from the new assignments (docs/em.md).
@@ -27,7 +28,6 @@ import numpy as np
 from .initialise import initial_state
 from .model import Observations, Priors, StickState
 from .updates import em_sweep
-from .structure import joint_least_squares, pair_stats
 
 __all__ = ["noise_variance", "split_candidates", "join_candidates", "refine_labels"]
 
@@ -94,13 +94,17 @@ def split_candidates(st: StickState, obs: Observations, rng: np.random.Generator
     return out
 
 
-def join_candidates(st: StickState, obs: Observations, rng: np.random.Generator, *, max_pairs: int = 3
-                    ) -> list[tuple[int, int]]:
+def join_candidates(st: StickState, obs: Observations, priors: Priors) -> list[tuple[int, int]]:
     """Pairs of sticks that move as one rigid body, best first (each stick at most once).
 
-    Only the ``max_pairs`` best-articulating partners of every stick (smallest
-    least-squares joint residual) are tested.
+    Joining b into a costs ``sum_{p in b} (|w_p - R_a l_pa - t_a|^2) - RSS_b`` with each
+    point's coordinates refitted on a (:func:`assign.candidate_fits`, the same fit the
+    resampling uses), i.e. a's motion has to explain b's points too; the pair is
+    joined when the cheaper direction loses less than ``F (3 + D) / 2 log N`` (in units
+    of ``2 sigma^2``), the motion parameters the join saves.
     """
+    from .assign import candidate_fits
+
     S = st.n_sticks
     if S < 2:
         return []
@@ -108,25 +112,13 @@ def join_candidates(st: StickState, obs: Observations, rng: np.random.Generator,
     N = float(obs.mask.sum() * obs.n_dims)
     F, D = obs.n_frames, obs.n_dims
     penalty = 0.5 * F * (3 + D) * np.log(N)
-    stats = pair_stats(st)
-    E = st.ends_per_stick
-    res = np.full((S, S), np.inf)
-    for a in range(S):
-        for b in range(a + 1, S):
-            k0 = [st.ends[E * a:E * (a + 1)].mean(axis=0), st.ends[E * b:E * (b + 1)].mean(axis=0)]
-            res[a, b] = res[b, a] = joint_least_squares(st, [a, b], k0, stats=stats)[1]
-    tested = set()
-    found = []
-    for a in range(S):
-        for b in np.argsort(res[a])[:max_pairs]:
-            pair = (min(a, int(b)), max(a, int(b)))
-            if pair[0] == pair[1] or pair in tested or not np.isfinite(res[pair]):
-                continue
-            tested.add(pair)
-            idx = np.flatnonzero((st.labels == pair[0]) | (st.labels == pair[1]))
-            loss = (_sfm_rss(obs, idx, rng) - rss[pair[0]] - rss[pair[1]]) / (2.0 * var)
-            if loss < penalty:
-                found.append((loss, pair))
+    _, sq = candidate_fits(st, obs, priors)  # (P, S)
+    moved = np.zeros((S, S))  # moved[b, a] = RSS of b's points on a
+    np.add.at(moved, st.labels, sq)
+    loss = (moved - rss[:, None]) / (2.0 * var)
+    loss = np.minimum(loss, loss.T)
+    np.fill_diagonal(loss, np.inf)
+    found = [(float(loss[a, b]), (a, b)) for a in range(S) for b in range(a + 1, S) if loss[a, b] < penalty]
     used: set[int] = set()
     out = []
     for _, (a, b) in sorted(found):
@@ -136,13 +128,13 @@ def join_candidates(st: StickState, obs: Observations, rng: np.random.Generator,
     return out
 
 
-def refine_labels(st: StickState, obs: Observations, rng: np.random.Generator, *, min_points: int
-                  ) -> tuple[np.ndarray, dict]:
+def refine_labels(st: StickState, obs: Observations, rng: np.random.Generator, *, min_points: int,
+                  priors: Priors | None = None) -> tuple[np.ndarray, dict]:
     """New assignments after the split and join checks (unchanged when none applies)."""
     labels = st.labels.copy()
     S = st.n_sticks
     splits = split_candidates(st, obs, rng, min_points=min_points)
-    joins = join_candidates(st, obs, rng)
+    joins = join_candidates(st, obs, priors or Priors())
     split_sticks = {s for s, _ in splits}
     for s, halves in splits:
         idx = np.flatnonzero(st.labels == s)

@@ -26,8 +26,10 @@ Deviations from the printed algorithm, each a parameter (docs/em.md):
   endpoints themselves. With ``"joint"``, the two endpoints of a stick that is
   not yet joined to anything are interchangeable and only one merge per stick
   pair is scored (the endpoint nearer the solution is used).
-* ``max_candidates``: score only the candidates with the smallest least-squares
-  joint residual (a cheap bound); ``None`` scores all of them.
+* ``max_candidates`` (default 40): score only the candidates with the smallest
+  least-squares joint residual (a cheap bound); ``None`` scores all of them (the
+  paper). The bound only matters for large figures (more than 9 sticks at the
+  first stage); pruned candidates come back at later stages.
 * ``merge_baseline`` (default True): a candidate's score is compared with the
   model run for the same ``n_iter_merge`` iterations without the merge (once per
   stage), instead of with the model before those iterations. EM on sticks with
@@ -36,14 +38,15 @@ Deviations from the printed algorithm, each a parameter (docs/em.md):
   baseline that creep is credited to whichever merge touches those sticks.
 * ``reuse_scores`` (default True): a candidate's score is kept from the stage
   where it was computed while none of its sticks was involved in a later merge
-  or changed points; the best candidate is always re-scored before it is taken
+  or changed more than a quarter of its points; the best candidate is always re-scored before it is taken
   (lazy greedy), so a stale score can only delay a merge, never force one.
   Each stage then scores O(J) new candidates instead of O(J^2).
 * ``refine_sticks`` (default True): after the first EM run, split sticks that are
   not rigid and join pairs that move as one, both by BIC (``refine.py``).
 * ``tol``: stop an EM run early once the objective changed by less than
   ``tol * |objective|`` over ``resample_every`` iterations and the last resampling
-  changed nothing. ``tol=0`` runs the fixed number of iterations.
+  moved at most 2% of the points (sampled assignments keep flipping a few
+  ambiguous points near joints). ``tol=0`` runs the fixed number of iterations.
 """
 
 from __future__ import annotations
@@ -54,8 +57,7 @@ from typing import Any, Callable
 import numpy as np
 
 from .assign import resample_assignments
-from .model import Ghosts, Observations, Priors, StickState, chain_degree, objective, objective_terms, \
-    structure_log_prior
+from .model import Ghosts, Observations, Priors, StickState, chain_degree, objective, objective_terms
 from .updates import em_sweep, update_endpoints
 
 __all__ = ["EMSettings", "run_em", "components", "merge_candidates", "Candidate", "score_candidates",
@@ -73,7 +75,7 @@ class EMSettings:
     min_stick_points: int = 3
     merge_scope: str = "local"
     merge_init: str = "joint"
-    max_candidates: int | None = None
+    max_candidates: int | None = 40
     max_merges: int | None = None
     tol: float = 1e-4
     batch_size: int = 2_000_000
@@ -89,15 +91,19 @@ class EMSettings:
 # ----------------------------------------------------------------------------- EM runs
 def run_em(st: StickState, obs: Observations, priors: Priors, settings: EMSettings, n_iter: int,
            rng: np.random.Generator, *, resample: bool = True, precisions: bool = True,
-           local: bool = True) -> tuple[StickState, float, int]:
+           local: bool = True, min_iter: int = 30) -> tuple[StickState, float, int]:
     """Up to ``n_iter`` EM sweeps, resampling R every ``settings.resample_every`` (not after the last).
 
-    Returns the state, its objective and the number of sweeps done.
+    With ``settings.tol > 0`` the run stops early (never before ``min_iter`` sweeps)
+    once converged. Returns the state, its objective and the number of sweeps done.
     """
     every = settings.resample_every if resample and settings.resample_every else 0
     check = every or 10
     prev = None
-    changed = False
+    changed = 0
+    # Sampled assignments keep flipping a few ambiguous points (near joints) for ever: a run has
+    # converged when the objective settled and at most 2% of the points moved.
+    settled = max(1, int(0.02 * obs.n_points))
     it = 0
     for it in range(1, n_iter + 1):
         em_sweep(st, obs, priors, precisions=precisions, local=local, n_procrustes=settings.n_procrustes,
@@ -105,7 +111,8 @@ def run_em(st: StickState, obs: Observations, priors: Priors, settings: EMSettin
         if it % check == 0 and it < n_iter:
             if settings.tol > 0:
                 cur = objective(st, obs, priors)
-                if prev is not None and not changed and abs(cur - prev) <= settings.tol * abs(cur):
+                if (prev is not None and it >= min_iter and changed <= settled
+                        and abs(cur - prev) <= settings.tol * abs(cur)):
                     break
                 prev = cur
             if every:
@@ -182,11 +189,16 @@ def stick_edges(st: StickState, obs: Observations | None = None) -> tuple[list[t
     return edges, verts
 
 
-def pair_stats(st: StickState, sticks: Any = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Frame sums ``sum_f R_a^T R_b`` (n, n, 3, 3), ``sum_f R_a^T t_b`` (n, n, 3), ``sum_f t_a . t_b`` (n, n)."""
+def pair_stats(st: StickState, sticks: Any = None, weights: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Frame sums ``sum_f w_f R_a^T R_b`` (n, n, 3, 3), ``sum_f w_f R_a^T t_b`` (n, n, 3), ``sum_f w_f t_a . t_b``."""
     R = st.rot if sticks is None else st.rot[sticks]
     t = st.trans if sticks is None else st.trans[sticks]
     n, F, D, _ = R.shape
+    if weights is not None:
+        sw = np.sqrt(weights)[None, :, None]
+        R = R * sw[..., None]
+        t = t * sw
     Rf = R.reshape(n, F * D, 3)
     tf = t.reshape(n, F * D)
     RfT = np.swapaxes(Rf, 1, 2)  # (n, 3, FD)
@@ -196,13 +208,16 @@ def pair_stats(st: StickState, sticks: Any = None) -> tuple[np.ndarray, np.ndarr
 
 
 def joint_least_squares(st: StickState, sticks: list[int], k0: list[np.ndarray], *, ridge: float = 1e-3,
-                        stats: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-                        ) -> tuple[np.ndarray, float]:
+                        stats: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+                        seen: np.ndarray | None = None) -> tuple[np.ndarray, float]:
     """Local points ``k_a`` on each stick that best coincide over all frames.
 
-    Minimises ``sum_f sum_a |R_af k_a + t_af - v_f|^2`` with ``v_f`` the mean of the
-    predictions (eliminated), plus ``ridge * F * sum_a |k_a - k0_a|^2`` to fix the
-    directions the motion leaves undetermined (a hinge's axis).
+    Minimises ``sum_f w_f sum_a |R_af k_a + t_af - v_f|^2`` with ``v_f`` the mean of the
+    predictions (eliminated), plus ``ridge * sum_f w_f * sum_a |k_a - k0_a|^2`` to fix
+    the directions the motion leaves undetermined (a hinge's axis). With ``seen``
+    (S, F) visible-point counts, frames where one of the sticks shows fewer than 3
+    points (its rotation there is whatever EM left, not what the data say) weigh
+    1/100; otherwise all weigh 1.
 
     Returns
     -------
@@ -214,7 +229,15 @@ def joint_least_squares(st: StickState, sticks: list[int], k0: list[np.ndarray],
     """
     n = len(sticks)
     F = st.n_frames
-    if stats is None:
+    w = None
+    if seen is not None:
+        ok = np.all(seen[np.asarray(sticks)] >= 3, axis=0)
+        if not ok.all() and ok.sum() >= min(10, F):
+            w = np.where(ok, 1.0, 0.01)
+    if w is not None:
+        RR, Rt, tt = pair_stats(st, sticks, w)
+        F = float(w.sum())
+    elif stats is None:
         RR, Rt, tt = pair_stats(st, sticks)
     else:
         ix = np.asarray(sticks)
@@ -244,25 +267,23 @@ class Candidate:
     fresh: bool = True  # scored at this stage (False: score reused from an earlier stage)
 
 
-def merge_candidates(st: StickState, settings: EMSettings) -> list[Candidate]:
+def merge_candidates(st: StickState, settings: EMSettings, seen: np.ndarray | None = None) -> list[Candidate]:
     """Every valid merge (deduplicated for ``merge_init="joint"``), with its joint residual."""
     comp_s, comp_v = components(st)
     J = st.n_vertices
     E = st.ends_per_stick
     cnt = st.vertex_counts()
-    # A side is a vertex, or a whole stick whose two endpoints are both alone (interchangeable).
+    # A side is a joint (a vertex with >= 2 endpoints) or, for "joint" merges, a stick standing
+    # for all its endpoints that are still alone: those are interchangeable, the one nearest the
+    # least-squares joint is used. For "mean" merges every vertex is a side.
+    alone = cnt == 1
+    free = alone[st.vertex_of].reshape(st.n_sticks, E)  # (S, E)
     sides: list[tuple[str, int]] = []
-    seen_free: set[int] = set()
-    for j in range(J):
-        own = np.flatnonzero(st.vertex_of == j)
-        if settings.merge_init == "joint" and cnt[j] == 1:
-            s = int(own[0] // E)
-            if np.all(cnt[st.vertex_of[E * s:E * (s + 1)]] == 1):
-                if s not in seen_free:
-                    seen_free.add(s)
-                    sides.append(("stick", s))
-                continue
-        sides.append(("vertex", j))
+    if settings.merge_init == "joint":
+        sides += [("vertex", int(j)) for j in np.flatnonzero(~alone)]
+        sides += [("stick", int(x)) for x in np.flatnonzero(free.any(axis=1))]
+    else:
+        sides += [("vertex", j) for j in range(J)]
 
     def side_comp(side: tuple[str, int]) -> int:
         return int(comp_s[side[1]]) if side[0] == "stick" else int(comp_v[side[1]])
@@ -282,19 +303,19 @@ def merge_candidates(st: StickState, settings: EMSettings) -> list[Candidate]:
             for kind, x in (a, b):
                 if kind == "stick":
                     ends.append(-1 - x)  # resolved after the fit
-                    k0.append(st.ends[E * x:E * (x + 1)].mean(axis=0))
+                    k0.append(st.ends[E * x + np.flatnonzero(free[x])].mean(axis=0))
                 else:
                     for i in np.flatnonzero(st.vertex_of == x):
                         ends.append(int(i))
                         k0.append(st.ends[i])
             sticks = [(-1 - e) if e < 0 else e // E for e in ends]
-            k, res = joint_least_squares(st, sticks, k0, stats=stats)
+            k, res = joint_least_squares(st, sticks, k0, stats=stats, seen=seen)
             resolved = []
             for e, kk in zip(ends, k):
-                if e < 0:  # pick the free stick's endpoint nearer the joint
-                    s = -1 - e
-                    d = np.linalg.norm(st.ends[E * s:E * (s + 1)] - kk, axis=1)
-                    e = E * s + int(np.argmin(d))
+                if e < 0:  # the stick's free endpoint nearest the joint
+                    x = -1 - e
+                    cand_e = E * x + np.flatnonzero(free[x])
+                    e = int(cand_e[np.argmin(np.linalg.norm(st.ends[cand_e] - kk, axis=1))])
                 resolved.append(e)
             resolved = np.asarray(resolved)
             vs = sorted({int(st.vertex_of[e]) for e in resolved})
@@ -374,11 +395,12 @@ def polish_joints(st: StickState, obs: Observations, priors: Priors, vertices: l
 
     E = st.ends_per_stick
     D, F = st.n_dims, st.n_frames
+    seen = st.design(obs).n
     involved = np.unique(np.concatenate([np.flatnonzero(st.vertex_of == j) // E for j in vertices]))
     for it in range(n_polish + 1):
         for j in vertices:
             ends = np.flatnonzero(st.vertex_of == j)
-            k, _ = joint_least_squares(st, list(ends // E), list(st.ends[ends]))
+            k, _ = joint_least_squares(st, list(ends // E), list(st.ends[ends]), seen=seen)
             st.ends[ends] = k
             pred = (st.rot[ends // E] @ k[:, None, :, None])[..., 0] + st.trans[ends // E]
             mu = pred.mean(axis=0)
@@ -388,7 +410,8 @@ def polish_joints(st: StickState, obs: Observations, priors: Priors, vertices: l
                 st.mu_e[ends] = pred
             st.mu_v[j] = mu
         if it < n_polish:
-            update_motions(st, obs, global_search=True, sticks=involved, use_polar=False)
+            update_motions(st, obs, global_search=True, sticks=involved, use_polar=False, n_newton=1,
+                           only_mirrors=True)
             update_local(st, obs, priors)
     for j, cap in zip(vertices, caps):
         ends = np.flatnonzero(st.vertex_of == j)
@@ -490,25 +513,35 @@ def _g_prior_change(st: StickState, cand: Candidate) -> float:
     return f(n1 + n2) - f(n1) - f(n2)
 
 
+def baseline_state(st: StickState, obs: Observations, priors: Priors, settings: EMSettings) -> StickState:
+    """The model without a merge, run for ``n_iter_merge`` iterations (once per stage).
+
+    Global precisions stay fixed for ``merge_scope="local"``, as in the blocks.
+    Scores measured against it credit a merge, not the convergence still going
+    on in slowly converging sticks.
+    """
+    if not settings.merge_baseline:
+        return st
+    base_st = st.copy()
+    for _ in range(settings.n_iter_merge):
+        em_sweep(base_st, obs, priors, precisions=settings.merge_scope == "full", local=True,
+                 n_procrustes=settings.n_procrustes)
+    return base_st
+
+
 def score_candidates(st: StickState, obs: Observations, priors: Priors, settings: EMSettings,
-                     cands: list[Candidate], rng: np.random.Generator) -> list[StickState | None]:
+                     cands: list[Candidate], rng: np.random.Generator, base_st: StickState | None = None
+                     ) -> list[StickState | None]:
     """Set ``cand.score`` (change of the objective) for every candidate.
 
+    ``base_st``: :func:`baseline_state` of ``st`` (computed when omitted).
     Returns the optimised states: for ``merge_scope="full"`` whole-model copies,
     for ``"local"`` the blocks (re-inserted by :func:`apply_merge`).
     """
     if settings.merge_scope not in ("local", "full"):
         raise ValueError(f"merge_scope must be 'local' or 'full', got {settings.merge_scope!r}")
-    if settings.merge_baseline:
-        # The model without a merge, run for the same iterations (global precisions fixed for
-        # "local", as in the blocks): scores then measure the merge, not the convergence still
-        # going on in slowly converging sticks.
-        base_st = st.copy()
-        for _ in range(settings.n_iter_merge):
-            em_sweep(base_st, obs, priors, precisions=settings.merge_scope == "full", local=True,
-                     n_procrustes=settings.n_procrustes)
-    else:
-        base_st = st
+    if base_st is None:
+        base_st = baseline_state(st, obs, priors, settings)
     if settings.merge_scope == "full":
         base = objective(base_st, obs, priors)
         outs: list[StickState | None] = []
@@ -571,11 +604,14 @@ def score_candidates(st: StickState, obs: Observations, priors: Priors, settings
 
 
 def _score_into(st: StickState, obs: Observations, priors: Priors, settings: EMSettings,
-                cands: list[Candidate], rng: np.random.Generator, blocks: dict[int, StickState | None]) -> None:
+                cands: list[Candidate], rng: np.random.Generator, blocks: dict[int, StickState | None],
+                base: dict) -> None:
     """Score ``cands`` (fresh) and remember their optimised states by candidate id."""
     if not cands:
         return
-    for c, b in zip(cands, score_candidates(st, obs, priors, settings, cands, rng)):
+    if "state" not in base:
+        base["state"] = baseline_state(st, obs, priors, settings)
+    for c, b in zip(cands, score_candidates(st, obs, priors, settings, cands, rng, base["state"])):
         c.fresh = True
         blocks[id(c)] = b
 
@@ -665,7 +701,7 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
         from .initialise import initial_state
         from .refine import refine_labels
 
-        labels, what = refine_labels(st, obs, rng, min_points=settings.min_stick_points)
+        labels, what = refine_labels(st, obs, rng, min_points=settings.min_stick_points, priors=priors)
         if not what["splits"] and not what["joins"]:
             break
         refinements.append(what)
@@ -682,7 +718,7 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
     k = 0
     cache: dict[tuple, tuple[float, frozenset]] = {}
     while settings.max_merges is None or k < settings.max_merges:
-        cands = merge_candidates(st, settings)
+        cands = merge_candidates(st, settings, st.design(obs).n)
         if not cands:
             break
         todo = []
@@ -693,14 +729,15 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
             else:
                 c.score, c.fresh = hit[0], False
         blocks: dict[int, StickState | None] = {}
-        _score_into(st, obs, priors, settings, todo, rng, blocks)
+        base: dict = {}
+        _score_into(st, obs, priors, settings, todo, rng, blocks, base)
         while True:  # lazy greedy: a reused score must be confirmed before its merge is taken
             b = int(np.argmax([c.score for c in cands]))
             c = cands[b]
             if c.fresh:
                 break
             c.fresh = True
-            _score_into(st, obs, priors, settings, [c], rng, blocks)
+            _score_into(st, obs, priors, settings, [c], rng, blocks, base)
         for x in cands:
             cache[x.key] = (x.score, frozenset((x.ends // st.ends_per_stick).tolist()))
         j1, j2 = c.j1, c.j2
@@ -709,11 +746,15 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
         old_labels, old_S = st.labels, st.n_sticks
         st = apply_merge(st, c, priors, settings, blocks.get(id(c)))
         st, val, sweeps = run_em(st, obs, priors, settings, settings.n_iter, rng)
-        # Scores of merges whose sticks the merge or the resampling touched are stale.
+        # Scores of merges whose sticks the merge touched, or whose membership changed by more than
+        # a quarter (a point or two flipping at a joint does not count), are stale.
         if st.n_sticks != old_S:
             cache.clear()
         else:
-            moved = set(old_labels[st.labels != old_labels].tolist()) | set(st.labels[st.labels != old_labels].tolist())
+            size = np.bincount(old_labels, minlength=old_S)
+            flux = np.bincount(old_labels[st.labels != old_labels], minlength=old_S) + np.bincount(
+                st.labels[st.labels != old_labels], minlength=old_S)
+            moved = set(np.flatnonzero(flux > np.maximum(1, 0.25 * size)).tolist())
             dirty = merged_sticks | moved
             cache = {key: v for key, v in cache.items() if not (v[1] & dirty)}
         k += 1

@@ -35,6 +35,8 @@ Where the printed updates differ (docs/em.md has the derivations):
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from scipy.linalg import solveh_banded
 
@@ -325,7 +327,8 @@ def _min_eig_sym3(H: np.ndarray) -> np.ndarray:
     return q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
 
 
-def newton_step(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray) -> np.ndarray:
+def newton_step(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, energy: np.ndarray | None = None,
+                *, return_energy: bool = False) -> Any:
     """One Newton step for ``f(R) = tr(R C_bb R^T) - 2 tr(R C_ab^T)`` on the rotations ``R Q``.
 
     With ``Q = exp([w]_x)`` and ``P = R^T R``, ``N = C_ab^T R``, the expansion to
@@ -335,7 +338,8 @@ def newton_step(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray) -> np.ndarray
     ``T_ab = sym(tr(P K_a C_bb K_b))`` (derived in docs/em.md; tested against finite
     differences). Where H is not positive definite it is shifted by its smallest
     eigenvalue (Levenberg-Marquardt), and steps are capped at 0.5 rad; the result
-    is kept only where f decreased.
+    is kept only where f decreased. ``energy``: f at R if known; with
+    ``return_energy`` the new f is returned too.
     """
     P = np.swapaxes(R, -1, -2) @ R
     N = np.swapaxes(C_ab, -1, -2) @ R
@@ -359,8 +363,13 @@ def newton_step(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray) -> np.ndarray
     nrm = np.linalg.norm(w, axis=-1, keepdims=True)
     w = w * np.minimum(1.0, 0.5 / np.maximum(nrm, 1e-300))
     R_new = R @ _rodrigues(w)
-    better = _rotation_energy(R_new, C_ab, C_bb) < _rotation_energy(R, C_ab, C_bb)
-    return np.where(better[..., None, None], R_new, R)
+    e_new = _rotation_energy(R_new, C_ab, C_bb)
+    e_old = _rotation_energy(R, C_ab, C_bb) if energy is None else energy
+    better = e_new < e_old
+    out = np.where(better[..., None, None], R_new, R)
+    if return_energy:
+        return out, np.where(better, e_new, e_old)
+    return out
 
 
 #: A stick whose smallest principal spread is below this fraction of its largest is "flat":
@@ -368,52 +377,85 @@ def newton_step(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray) -> np.ndarray
 FLAT_RATIO = 0.3
 
 
+def _plane_normal(C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit eigenvector of the smallest eigenvalue of symmetric 3x3 ``C`` and lambda_min / lambda_max.
+
+    The eigenvector is the longest cross product of two rows of ``C - lambda_min I``
+    (closed form, batched).
+    """
+    lam_min = _min_eig_sym3(C)
+    lam_max = -_min_eig_sym3(-C)
+    M = C - lam_min[..., None, None] * np.eye(3)
+    cands = np.stack([np.cross(M[..., 0, :], M[..., 1, :]), np.cross(M[..., 0, :], M[..., 2, :]),
+                      np.cross(M[..., 1, :], M[..., 2, :])], axis=-2)
+    norms = np.linalg.norm(cands, axis=-1)
+    k = np.argmax(norms, axis=-1)
+    n = np.take_along_axis(cands, k[..., None, None], axis=-2)[..., 0, :]
+    n = n / np.maximum(np.take_along_axis(norms, k[..., None], axis=-1), 1e-300)
+    return n, lam_min / np.maximum(lam_max, 1e-300)
+
+
 def best_rotations(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, axes: np.ndarray | None = None,
-                   flat: np.ndarray | None = None, *, use_polar: bool = True, n_newton: int = 2) -> np.ndarray:
+                   flat: np.ndarray | None = None, *, use_polar: bool = True, n_newton: int = 2,
+                   frame_mirrors: bool = True, only_mirrors: bool = False) -> np.ndarray:
     """Multi-start minimisation of the per-(stick, frame) rotation energy.
 
-    The energy of a 2x3 rotation has several local minima when the stick's
-    shape is nearly planar or collinear (the depth-reversal ambiguity of
-    orthographic projection), and EM's one-step-at-a-time updates can sit in the
-    wrong one for hundreds of iterations. For a planar shape with unit normal n
-    the projections of ``R`` and of its mirror image ``R (I - 2 n n^T)`` coincide
-    (both have orthonormal rows), so the two are exactly as good until a joint
-    off that plane tells them apart. Starts: the current R; the paper's SVD
-    solution (polar factor of C_ab) when ``use_polar``; and, for the sticks
-    marked in ``flat`` (boolean over R's first axis), the current R mirrored
-    through the planes normal to the two minor principal axes of the stick's
-    shape (``axes``, rows in increasing order of spread, shape (S, 1, 3, 3)).
-    Each start is polished by ``n_newton`` Newton steps; the lowest energy wins
-    (never above the current one).
+    The energy of a 2x3 rotation has several local minima when the sources it
+    maps (the stick's visible points and its endpoints) are nearly planar or
+    collinear — a flat stick, or a frame where only three of its points are seen
+    — the depth-reversal ambiguity of orthographic projection; EM's
+    one-step-at-a-time updates can sit in the wrong one for hundreds of
+    iterations. For sources in a plane with unit normal n the projections of
+    ``R`` and of its mirror image ``R (I - 2 n n^T)`` coincide (both have
+    orthonormal rows), so the two are equally good until something off that plane
+    (a joint, the other points) tells them apart. Starts: the current R; the
+    paper's SVD solution (polar factor of C_ab) when ``use_polar``; for the sticks
+    marked in ``flat`` (boolean over R's first axis), R mirrored through the planes
+    normal to the two minor principal axes of the stick's shape (``axes``, rows in
+    increasing order of spread, shape (S, 1, 3, 3)); and with ``frame_mirrors``, in
+    every (stick, frame) whose weighted sources are nearly planar (smallest
+    eigenvalue of C_bb below ``FLAT_RATIO**2`` of the largest), R mirrored through
+    that frame's plane. Each start is polished by ``n_newton`` Newton steps; the
+    lowest energy wins (never above the current one). ``only_mirrors`` tries the
+    mirrored starts alone (the current R is not polished: cheap where few
+    frames are ambiguous).
     """
     D = R.shape[-2]
-    best = R
-    for _ in range(n_newton):
-        best = newton_step(best, C_ab, C_bb)
-    best_e = _rotation_energy(best, C_ab, C_bb)
-    candidates = []
+    batch = R.shape[:-2]
+    best, best_e = R, _rotation_energy(R, C_ab, C_bb)
+    if not only_mirrors:
+        for _ in range(n_newton):
+            best, best_e = newton_step(best, C_ab, C_bb, best_e, return_energy=True)
+    candidates: list[tuple[np.ndarray | None, np.ndarray]] = []
     if use_polar:
         U, _, Vt = np.linalg.svd(C_ab, full_matrices=False)
         polar = U @ Vt
         if D == 3:
             polar = polar * np.sign(np.linalg.det(polar))[..., None, None]
-        candidates.append((slice(None), polar))
+        candidates.append((None, polar))
     if flat is not None and axes is not None and np.any(flat):
-        idx = np.flatnonzero(flat)
+        mask = np.broadcast_to(np.reshape(flat, flat.shape + (1,) * (len(batch) - flat.ndim)), batch)
+        ax = np.broadcast_to(axes, batch + (3, 3))[mask]
         for k in range(2):
-            n = axes[idx, ..., k, :]
-            mirror = np.eye(3) - 2.0 * n[..., :, None] * n[..., None, :]
-            candidates.append((idx, R[idx] @ mirror))
+            n = ax[..., k, :]
+            candidates.append((mask, R[mask] @ (np.eye(3) - 2.0 * n[..., :, None] * n[..., None, :])))
+    if frame_mirrors:
+        n, ratio = _plane_normal(C_bb)
+        mask = ratio < FLAT_RATIO ** 2
+        if mask.any():
+            n = n[mask]
+            candidates.append((mask, R[mask] @ (np.eye(3) - 2.0 * n[..., :, None] * n[..., None, :])))
     for sel, X in candidates:
-        Ca, Cb = C_ab[sel], C_bb[sel]
-        for _ in range(n_newton):
-            X = newton_step(X, Ca, Cb)
+        Ca, Cb = (C_ab, C_bb) if sel is None else (C_ab[sel], C_bb[sel])
         e = _rotation_energy(X, Ca, Cb)
-        take = e < best_e[sel]
-        if isinstance(sel, slice):
+        for _ in range(n_newton):
+            X, e = newton_step(X, Ca, Cb, e, return_energy=True)
+        if sel is None:
+            take = e < best_e
             best = np.where(take[..., None, None], X, best)
             best_e = np.where(take, e, best_e)
         else:
+            take = e < best_e[sel]
             best = best.copy()
             best_e = best_e.copy()
             best[sel] = np.where(take[..., None, None], X, best[sel])
@@ -446,7 +488,7 @@ def _principal_axes(st: StickState) -> tuple[np.ndarray, np.ndarray]:
 
 def update_motions(st: StickState, obs: Observations, *, n_procrustes: int = 1, newton: bool = False,
                    global_search: bool = False, sticks: np.ndarray | None = None, use_polar: bool = True,
-                   hold: np.ndarray | None = None) -> None:
+                   hold: np.ndarray | None = None, n_newton: int = 2, only_mirrors: bool = False) -> None:
     """Rotations and translations of every stick in every frame, jointly.
 
     The weighted problem ``min_{R,t} sum_n w_n |a_n - R b_n - t|^2`` over the
@@ -457,7 +499,8 @@ def update_motions(st: StickState, obs: Observations, *, n_procrustes: int = 1, 
     Green-Gower iteration crawls: sticks whose points are nearly collinear); each
     new rotation is kept only where it lowers that energy, so the update is
     monotone. ``global_search`` runs :func:`best_rotations` instead of the Newton
-    step, on the sticks in ``sticks`` (indices) or on all. ``hold`` (S, F) keeps
+    step, on the sticks in ``sticks`` (indices) or on all (``only_mirrors``: see
+    :func:`best_rotations`). ``hold`` (S, F) keeps
     the current rotation of those (stick, frame) pairs (the translation is still
     updated).
     """
@@ -472,12 +515,13 @@ def update_motions(st: StickState, obs: Observations, *, n_procrustes: int = 1, 
     if global_search:
         axes, flat = _principal_axes(st)
         if sticks is None:
-            R = best_rotations(R, C_ab, C_bb, axes, flat, use_polar=use_polar)
+            R = best_rotations(R, C_ab, C_bb, axes, flat, use_polar=use_polar, n_newton=n_newton,
+                               only_mirrors=only_mirrors)
             q = rot_to_quat(complete_rotation(R))
         else:
             R, q = R.copy(), q.copy()
             R[sticks] = best_rotations(R[sticks], C_ab[sticks], C_bb[sticks], axes[sticks], flat[sticks],
-                                       use_polar=use_polar)
+                                       use_polar=use_polar, n_newton=n_newton, only_mirrors=only_mirrors)
             q[sticks] = rot_to_quat(complete_rotation(R[sticks]))
     elif newton:
         R_n = newton_step(R, C_ab, C_bb)
