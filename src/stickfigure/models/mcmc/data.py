@@ -16,8 +16,9 @@ Procrustes residual at the noise level); its *rigid reach* is the largest
 distance to a member, and the figure's part size is the median reach. The data are
 centred on their mean position (one translation for the whole sequence) and
 divided by ``scale = part_size / TARGET_REACH`` so that a typical part spans what
-the prior expects (``TARGET_REACH`` = 0.4: points filling a stick end to end have a median reach
-of about 0.75 of its length, so sticks come out about 0.55 long). Results are mapped back to
+the prior expects (``TARGET_REACH`` = 0.33: points filling a stick end to end have a median
+reach of about 0.75 of its length, so sticks come out about 0.45 long; the value was set on
+synthetic arms and random planar figures). Results are mapped back to
 the original coordinates. The scale can also be given explicitly (data units per
 model unit). Children of the root have their translations tied to the origin
 with a precision ``1 / R^2``, ``R`` the largest distance of a point from the centre,
@@ -135,11 +136,13 @@ def normalise(xy: np.ndarray, scale: float | str = "auto") -> tuple[np.ndarray, 
         if not np.isfinite(part) or part <= 0:
             # No rigid group at all: fall back on the overall spread.
             part = float(np.sqrt(np.nanmean(((xy - centre) ** 2).sum(-1)))) / 3.0
+        if not np.isfinite(part) or part <= 0:
+            raise ValueError("traj has no spatial extent (all observed positions coincide); cannot scale it")
         scale_f = part / TARGET_REACH
     else:
         scale_f = float(scale)
     if not np.isfinite(scale_f) or scale_f <= 0:
-        raise ValueError(f"scale must be a positive number, got {scale_f!r} (are all points at one place?)")
+        raise ValueError(f"scale must be a positive number, got {scale_f!r}")
     q = (xy - centre) / scale_f
     return q[..., 0] + 1j * q[..., 1], centre, scale_f, noise / scale_f
 

@@ -42,6 +42,11 @@ Derivations and deviations from the printed equations
   ``s_yh`` (which also sets the length) is slice sampled in log space with y
   integrated out.
 * Split-merge: see :func:`split_merge`.
+* Tree moves: the paper's sub-tree move (:func:`subtree_move`) and three we
+  added because chains otherwise stay in trees described from the wrong end:
+  :func:`rehang_move` (a sub-tree move that refits the moved root),
+  :func:`reverse_path` (describe a chain from its other end; the likelihood is
+  unchanged) and :func:`swap_move` (parent and child exchange places).
 """
 
 from __future__ import annotations
@@ -111,11 +116,6 @@ class SweepConfig:
         Update indicators and the tree (False keeps them fixed: imputation on new frames).
     likelihood : bool
         Include the data (False samples the prior; used by the tests).
-    beta_tree : float
-        Power (<= 1) applied to the posterior ratio in the tree moves (sub-tree,
-        path reversal, swap, re-hang). Below 1 only during burn-in, where it
-        lets a chain leave a tree described from the wrong end (see
-        :mod:`.sampler`); the sampled posterior is always at 1.
     """
 
     n_aux: int = 5
@@ -124,7 +124,6 @@ class SweepConfig:
     n_subtree: int = 2
     structure: bool = True
     likelihood: bool = True
-    beta_tree: float = 1.0
 
 
 @dataclass
@@ -775,7 +774,7 @@ def _target(st: State, data: Data, hyper: Hyper, cfg: SweepConfig) -> float:
 
 # ------------------------------------------------------------- sub-tree move
 def subtree_move(st: State, data: Data, hyper: Hyper, rng: np.random.Generator,
-                 stats: MoveStats | None = None, beta: float = 1.0) -> None:
+                 stats: MoveStats | None = None) -> None:
     """Metropolis-Hastings re-attachment of a sub-tree (section 3.1.3).
 
     The sub-tree root r is chosen in proportion to its number of points and its
@@ -808,7 +807,7 @@ def subtree_move(st: State, data: Data, hyper: Hyper, rng: np.random.Generator,
     old_tree = log_tree_prior(n, st.parent, st.lam, A)
     st.parent[r] = p_new
     new_tree = log_tree_prior(n, st.parent, st.lam)
-    log_ratio = beta * (new_tree - old_tree + g(p_new) - g(p_old))
+    log_ratio = new_tree - old_tree + g(p_new) - g(p_old)
     ok = math.log(rng.random()) < log_ratio
     if not ok:
         st.parent[r] = p_old
@@ -817,7 +816,7 @@ def subtree_move(st: State, data: Data, hyper: Hyper, rng: np.random.Generator,
 
 
 def reverse_path(st: State, data: Data, hyper: Hyper, rng: np.random.Generator,
-                 stats: MoveStats | None = None, beta: float = 1.0) -> State:
+                 stats: MoveStats | None = None) -> State:
     """Metropolis-Hastings reversal of the path from a root child down to a leaf.
 
     A chain can be described from either end: a stick attached at its proximal
@@ -852,7 +851,7 @@ def reverse_path(st: State, data: Data, hyper: Hyper, rng: np.random.Generator,
             others = others[others != path[q + 1]]
             new.parent[others] = path[q + 1]
     # The likelihood is invariant: compare priors only.
-    log_ratio = beta * (_prior_target(new, hyper) - _prior_target(st, hyper))
+    log_ratio = _prior_target(new, hyper) - _prior_target(st, hyper)
     ok = math.log(rng.random()) < log_ratio
     if stats is not None:
         stats.add("reverse_path", ok)
@@ -892,7 +891,7 @@ def rehang_move(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, c
     new.parent[r] = p_new
     _set_phi(new, r, phi)
     proposed = _target(new, data, hyper, cfg)
-    ok = math.log(rng.random()) < cfg.beta_tree * (proposed - current) + lr - lq
+    ok = math.log(rng.random()) < proposed - current + lr - lq
     if stats is not None:
         stats.add("rehang", ok)
     return (new, proposed) if ok else (st, current)
@@ -951,7 +950,7 @@ def swap_move(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg
     _set_phi(new, c, phi_c)
     _set_phi(new, p, phi_p)
     proposed = _target(new, data, hyper, cfg)
-    log_ratio = cfg.beta_tree * (proposed - current) + lr_p + lr_c + lr_h - lq_c - lq_p - lq_h
+    log_ratio = proposed - current + lr_p + lr_c + lr_h - lq_c - lq_p - lq_h
     ok = math.log(rng.random()) < log_ratio
     if stats is not None:
         stats.add("swap", ok)
@@ -1247,7 +1246,10 @@ def impute_missing(st: State, data: Data, y: np.ndarray, rng: np.random.Generato
 # -------------------------------------------------------------------- sweep
 def sweep(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg: SweepConfig,
           stats: MoveStats | None = None) -> State:
-    """One sweep: structure moves, then every parameter, then the missing values."""
+    """One sweep: indicators, split-merge, tree moves, then every parameter and the missing values.
+
+    Returns the (possibly new) state object; ``data.x`` is updated in place.
+    """
     lik = cfg.likelihood
     if cfg.structure:
         gibbs_indicators(st, data, hyper, rng, cfg, stats)
@@ -1255,8 +1257,8 @@ def sweep(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg: Sw
         for _ in range(cfg.n_split_merge):
             st, current = split_merge(st, data, hyper, rng, cfg, stats, current)
         for _ in range(cfg.n_subtree):
-            subtree_move(st, data, hyper, rng, stats, cfg.beta_tree)
-            st = reverse_path(st, data, hyper, rng, stats, cfg.beta_tree)
+            subtree_move(st, data, hyper, rng, stats)
+            st = reverse_path(st, data, hyper, rng, stats)
             st, _ = swap_move(st, data, hyper, rng, cfg, stats)
             st, _ = rehang_move(st, data, hyper, rng, cfg, stats)
     update_translations(st, data, hyper, rng, lik)

@@ -40,8 +40,10 @@ class ChainSettings:
         Number of k-means clusters of the starting state (0: one per ``init_size`` points).
     init_size : int
     anneal : float
-        Fraction of the burn-in over which the tree moves' power rises from
-        ``beta0`` to 1 (0: no annealing).
+        Fraction of the burn-in during which the joint ties are loosened
+        (:func:`_tempered_sweep`), their strength rising from ``beta0`` to 1
+        (0: no annealing). Burn-in draws are discarded; afterwards every
+        kernel samples the model itself.
     beta0 : float
     """
 
@@ -60,6 +62,25 @@ def _record(st: State, data: Data) -> dict[str, Any]:
     pred = np.exp(1j * st.theta[c]) * ymean[:, None] + st.T[c]
     return {"c": c.copy(), "parent": st.parent.copy(), "theta": st.theta.copy(), "T": st.T.copy(),
             "prec": st.precisions(), "y": ymean, "pred": pred}
+
+
+def _tempered_sweep(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg: SweepConfig,
+                    beta: float) -> State:
+    """A sweep of the model whose joint ties are loosened by ``beta`` (burn-in only).
+
+    The tempered model has ``s_T -> beta s_T`` (a Gamma(a_sT, b_sT / beta) prior, so
+    it is a proper model whose state maps one-to-one onto the real one),
+    ``kappa -> beta kappa`` and a weaker root tie. With loose joints a stick's
+    parameters follow its own points instead of contorting to meet its
+    neighbours, so the structure moves can rearrange the tree; as ``beta`` rises
+    to 1 the joints tighten and the tree in which they fit wins.
+    """
+    st.s_T = st.s_T * beta
+    tempered = replace(hyper, kappa_rho=hyper.kappa_rho * beta, kappa_nd=hyper.kappa_nd * beta,
+                       root_precision=hyper.root_precision * beta, b_sT=hyper.b_sT / beta)
+    st = sweep(st, data, tempered, rng, cfg)
+    st.s_T = st.s_T / beta
+    return st
 
 
 def run_chain(z: np.ndarray, hyper: Hyper, cfg: SweepConfig, settings: ChainSettings,
@@ -113,11 +134,11 @@ def run_chain(z: np.ndarray, hyper: Hyper, cfg: SweepConfig, settings: ChainSett
     n_anneal = int(settings.anneal * settings.burn_in)
     try:
         for s in range(n):
-            # Burn-in only: tempered tree moves let a chain turn a tree described from the
-            # wrong end (a valley of tens of nats between two good descriptions).
             beta = settings.beta0 + (1.0 - settings.beta0) * s / n_anneal if s < n_anneal else 1.0
-            step_cfg = cfg if beta == 1.0 else replace(cfg, beta_tree=beta)
-            st = sweep(st, data, hyper, rng, step_cfg, stats if beta == 1.0 else None)
+            if beta < 1.0:
+                st = _tempered_sweep(st, data, hyper, rng, cfg, beta)
+            else:
+                st = sweep(st, data, hyper, rng, cfg, stats)
             tr_lj[s] = log_joint(st, data, hyper, observed=True)
             tr_k[s] = st.K
             tr_lam[s] = st.lam
