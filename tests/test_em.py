@@ -158,3 +158,9 @@ def test_plots(tmp_path, chain, fitted):
     assert out.exists() and out.stat().st_size > 1000
     with pytest.raises(ValueError, match="em"):
         emplot.plot_stages(sf.Skeleton(method="sfm", labels=np.zeros(3, int), n_sticks=1))
+
+
+def test_progress_bar_reports_stages(chain, capsys):
+    sf.fit(chain, method="em", random_state=0, labels=chain.labels_true, n_iter=20, progress=True)
+    err = capsys.readouterr().err
+    assert "stage" in err and "objective" in err

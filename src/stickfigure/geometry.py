@@ -204,7 +204,6 @@ def _point_shapes(A: np.ndarray, t: np.ndarray, X: np.ndarray, mask: np.ndarray,
 
     A (F, D, r), t (F, D), X (F, P, D), mask (F, P). Returns S of shape (P, r).
     """
-    r = A.shape[2]
     AtA = np.einsum("fdk,fdl->fkl", A, A)
     G = _damped_gram(np.einsum("fp,fkl->pkl", mask, AtA), ridge)
     b = np.einsum("fp,fdk,fpd->pk", mask, A, X - t[:, None, :])
@@ -1052,34 +1051,52 @@ def _complete_for_affinity(xy: np.ndarray, kappa: float = 1e-3) -> np.ndarray:
     return low_rank_complete(xy, max(1, min(r, P - 1, F * D - 1)))
 
 
-def _hypothesis_scores(X: np.ndarray, mem: np.ndarray, rank: int, sig2: float, dof: int
-                       ) -> np.ndarray:
+def _hypothesis_scores(G: np.ndarray, mem: np.ndarray, rank: int, sig2: float, dof: int,
+                       W: np.ndarray | None = None) -> np.ndarray:
     """Normalised residual of every point under every hypothesis' rigid fit.
 
-    X (K, P) trajectories in reduced coordinates, mem (H, P) members. Each
-    hypothesis is fitted by its members' mean and top-``rank`` principal
-    directions. ``z = r^2 / (sig2 * dof * c)`` where ``c`` accounts for fitting
-    from few points: ``1 + h`` out of sample, ``1 - h`` in sample, with the
-    leverage ``h = 1/n + sum_k coef_k^2 / lambda_k``.
+    G (P, P) is the Gram matrix of the trajectories, mem (H, P) the members.
+    Each hypothesis is fitted by its members' mean and top-``rank`` principal
+    directions, computed from the members' centred Gram matrix (an n x n
+    eigenproblem, n the number of members; or, for hypotheses with more members
+    than coordinates, from the scatter matrix of the trajectories ``W`` (F*D, P)).
+    ``z = r^2 / (sig2 * dof * c)`` where
+    ``c`` accounts for fitting from few points: ``1 + h`` out of sample, ``1 - h``
+    in sample, with the leverage ``h = 1/n + sum_k coef_k^2 / lambda_k``.
     """
-    m = mem.astype(float)
-    n = np.maximum(m.sum(axis=1), 1.0)
-    mu = (m @ X.T) / n[:, None]  # (H, K)
-    scatter = np.einsum("kp,hp,lp->hkl", X, m, X, optimize=True) - n[:, None, None] * mu[:, :, None] * mu[:, None, :]
-    K = scatter.shape[1]
-    r = min(rank, K)
-    lam = np.empty((mem.shape[0], r))
-    V = np.empty((mem.shape[0], K, r))
-    for h in range(mem.shape[0]):  # hypotheses, not frames; only the top r eigenpairs
-        w, v = scipy.linalg.eigh(scatter[h], subset_by_index=[K - r, K - 1])
-        lam[h], V[h] = w[::-1], v[:, ::-1]
-    lam = np.maximum(lam, 1e-300)
-    Y = X[None, :, :] - mu[:, :, None]  # (H, K, P)
-    coef = np.einsum("hkr,hkp->hrp", V, Y, optimize=True)
-    r2 = np.maximum(np.sum(Y * Y, axis=1) - np.sum(coef * coef, axis=1), 0.0)
-    lev = np.sum(coef * coef / lam[:, :, None], axis=1) + 1.0 / n[:, None]
-    fac = np.where(mem, np.maximum(1.0 - lev, 0.05), 1.0 + lev)
-    return r2 / (sig2 * dof * fac)
+    H, P = mem.shape
+    d = np.diag(G)
+    z = np.empty((H, P))
+    for h in range(H):  # hypotheses, not frames; each works on its few members
+        M = np.flatnonzero(mem[h])
+        n = M.size
+        a = G[M].mean(axis=0)  # x_q . mu, (P,)
+        c = a[M].mean()  # mu . mu
+        r = min(rank, n - 1)
+        if r >= 1 and W is not None and n > W.shape[0]:
+            mu = W[:, M].mean(axis=1)
+            Yc = W[:, M] - mu[:, None]
+            K = W.shape[0]
+            lam, U = scipy.linalg.eigh(Yc @ Yc.T, subset_by_index=[K - r, K - 1])
+            lam = np.maximum(lam, 1e-300)
+            coef = U.T @ (W - mu[:, None])  # (r, P)
+            proj = np.sum(coef * coef, axis=0)
+            lev = np.sum(coef * coef / lam[:, None], axis=0) + 1.0 / n
+        elif r >= 1:
+            Gc = G[np.ix_(M, M)] - a[M][:, None] - a[M][None, :] + c
+            lam, V = scipy.linalg.eigh(Gc, subset_by_index=[n - r, n - 1])
+            lam = np.maximum(lam, 1e-300)
+            cross = G[M] - a[M][:, None] - a[None, :] + c  # (x_i - mu) . (x_q - mu), (n, P)
+            coef = (V.T @ cross) / np.sqrt(lam)[:, None]  # (r, P)
+            proj = np.sum(coef * coef, axis=0)
+            lev = np.sum(coef * coef / lam[:, None], axis=0) + 1.0 / n
+        else:
+            proj = np.zeros(P)
+            lev = np.full(P, 1.0 / max(n, 1))
+        r2 = np.maximum(d - 2.0 * a + c - proj, 0.0)
+        fac = np.where(mem[h], np.maximum(1.0 - lev, 0.05), 1.0 + lev)
+        z[h] = r2 / (sig2 * dof * fac)
+    return z
 
 
 def rigid_affinity(
@@ -1088,7 +1105,7 @@ def rigid_affinity(
     rank: int = 3,
     threshold: float = 2.0,
     spread: float = 2.0,
-    max_hypotheses: int = 150,
+    max_hypotheses: int = 200,
     n_candidates: int = 8,
     max_steps: int = 40,
     n_per_seed: int = 3,
@@ -1126,7 +1143,8 @@ def rigid_affinity(
     spread : float
         Acceptance relative to the members' own median residual.
     max_hypotheses : int
-        At most this many seed points (chosen at random beyond that).
+        At most this many hypotheses: ``max_hypotheses // n_per_seed`` seed points
+        (chosen at random beyond that), each giving its ``n_per_seed`` most rigid local sets.
     n_candidates : int
         Neighbours searched for the initial local sets.
     max_steps : int
@@ -1156,13 +1174,10 @@ def rigid_affinity(
     dof = max(FD - rank, 1)
     G = W.T @ W
     dist = _trajectory_distances(G, F)
-    seeds = np.arange(P) if P <= max_hypotheses else np.sort(rng.choice(P, max_hypotheses, replace=False))
+    n_seeds = max(1, max_hypotheses // max(int(n_per_seed), 1))
+    seeds = np.arange(P) if P <= n_seeds else np.sort(rng.choice(P, n_seeds, replace=False))
     sets, resid = _best_local_sets(G, dist, seeds, rank, n_candidates, n_best=n_per_seed)
     sig2 = max(float(np.median(resid[::n_per_seed])) / dof, 1e-300)
-    # Reduced coordinates: the trajectories' own column space (lossless for residuals).
-    U, s, Vt = np.linalg.svd(W, full_matrices=False)
-    keep = s > s[0] * 1e-12
-    X = s[keep, None] * Vt[keep]  # (K, P)
     H = sets.shape[0]
     mem = np.zeros((H, P), bool)
     mem[np.arange(H)[:, None], sets] = True
@@ -1172,7 +1187,7 @@ def rigid_affinity(
         return np.maximum(threshold, spread * med)[:, None]
 
     for _ in range(max_steps):
-        z = _hypothesis_scores(X, mem, rank, sig2, dof)
+        z = _hypothesis_scores(G, mem, rank, sig2, dof, W)
         tau = accept(z)
         cand = ~mem & (z < tau)
         if not cand.any():
@@ -1180,7 +1195,7 @@ def rigid_affinity(
         zc = np.where(cand, z, np.inf)
         rank_in_row = np.argsort(np.argsort(zc, axis=1, kind="stable"), axis=1, kind="stable")
         mem |= cand & (rank_in_row < mem.sum(axis=1, keepdims=True))
-    z = _hypothesis_scores(X, mem, rank, sig2, dof)
+    z = _hypothesis_scores(G, mem, rank, sig2, dof, W)
     inliers = z < accept(z)
     pf = inliers.astype(float)
     inter = pf.T @ pf
