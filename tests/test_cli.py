@@ -157,8 +157,6 @@ def test_fit_projects_3d_mocap(tmp_path, capsys):
                  "-o", str(tmp_path / "w.png")]) == 0
 
 
-@pytest.mark.xfail(reason="skeleton.py: Skeleton.impute calls get_method(m).impute (the estimator's instance "
-                          "method) instead of the classmethod impute_skeleton; remove this mark when fixed")
 def test_impute(work, model, tmp_path, capsys):
     d, fig = work
     out = tmp_path / "filled.csv"

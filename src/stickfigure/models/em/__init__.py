@@ -193,18 +193,6 @@ class EMSkeleton(StickEstimator):
         return _skeleton(stages, selected, norm, info0, self.selection, traj)
 
     # ----------------------------------------------------------------- impute
-    def impute(self, X: Any) -> np.ndarray:  # type: ignore[override]
-        """Fill the missing entries of ``X`` with the fitted structure (see :meth:`Skeleton.impute`).
-
-        ``Skeleton.impute`` currently reaches the method through the class
-        (``get_method(name).impute(skeleton, traj)``); that call lands here with the
-        skeleton as ``self`` and is passed on to :meth:`impute_skeleton`.
-        """
-        if isinstance(self, Skeleton):
-            traj = X if isinstance(X, Trajectories) else Trajectories(np.asarray(X, float), allow_unobserved=True)
-            return EMSkeleton.impute_skeleton(self, traj)
-        return super().impute(X)
-
     @classmethod
     def impute_skeleton(cls, skeleton: Skeleton, traj: Trajectories) -> np.ndarray:
         """Re-fit motions, endpoints and vertices to ``traj`` with L, K, G and R fixed; predict every point.

@@ -192,19 +192,6 @@ class StickMCMC(StickEstimator):
         return self
 
     # ------------------------------------------------------------- impute
-    def impute(self, X: Any) -> np.ndarray:  # type: ignore[override]
-        """Fill the missing entries of ``X`` (see :meth:`Skeleton.impute`).
-
-        ``Skeleton.impute`` currently reaches the method through the class
-        (``get_method(name).impute(skeleton, traj)``, a known issue in skeleton.py);
-        that call lands here with the skeleton as ``self`` and is passed on to
-        :meth:`impute_skeleton`.
-        """
-        if isinstance(self, Skeleton):
-            traj = X if isinstance(X, Trajectories) else Trajectories(np.asarray(X, float), allow_unobserved=True)
-            return StickMCMC.impute_skeleton(self, traj)
-        return super().impute(X)
-
     @classmethod
     def impute_skeleton(cls, skeleton: Skeleton, traj: Trajectories) -> np.ndarray:
         """Posterior-predictive mean of every entry of ``traj`` (same points, any frames).

@@ -55,7 +55,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.special import gammaln
 
 from .model import (
     LOG2PI,
@@ -72,7 +71,7 @@ from .model import (
     translation_sample,
 )
 from .prior import ancestor_matrix, log_tree_prior
-from .state import Data, State, log_joint, node_prior_logpdf, parent_context, sample_y
+from .state import Data, State, log_joint, node_prior_logpdf, sample_y
 
 __all__ = [
     "SweepConfig",
