@@ -34,6 +34,7 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 import stickfigure as sf
+from stickfigure.metrics import score_skeleton
 from stickfigure.models import get_method
 from stickfigure.trajectories import Trajectories
 
@@ -44,31 +45,8 @@ BASELINES = ("em", "multibody-sfm", "sfm")
 
 # ------------------------------------------------------------------ scoring
 def _score(skel: sf.Skeleton, traj: Trajectories) -> dict[str, Any]:
-    try:
-        from stickfigure.metrics import score_skeleton
-    except ImportError:  # the shared metrics module has not landed: score here, and say so
-        return {**_local_score(skel, traj), "notes": "local scoring (stickfigure.metrics missing)"}
     s = score_skeleton(skel, traj)
     return {k: s.get(k) for k in ("ari", "misclassification", "edge_f1", "exact")}
-
-
-def _local_score(skel: sf.Skeleton, traj: Trajectories) -> dict[str, Any]:
-    from scipy.optimize import linear_sum_assignment
-    from sklearn.metrics import adjusted_rand_score
-
-    lt, lp = traj.labels_true, skel.labels
-    ok = lt >= 0
-    ari = float(adjusted_rand_score(lt[ok], lp[ok]))
-    C = np.zeros((lp.max() + 1, lt.max() + 1))
-    np.add.at(C, (lp[ok], lt[ok]), 1)
-    r, c = linear_sum_assignment(-C)
-    mis = 1.0 - C[r, c].sum() / ok.sum()
-    major = {s: int(np.argmax(C[s])) for s in range(C.shape[0])}
-    pred = {tuple(sorted((major[a], major[b]))) for a, b in skel.edges if major[a] != major[b]}
-    true = {tuple(sorted(e)) for e in traj.edges_true or []}
-    tp = len(pred & true)
-    f1 = 0.0 if tp == 0 else 2 * tp / (len(skel.edges) + len(true))
-    return {"ari": ari, "misclassification": float(mis), "edge_f1": f1, "exact": bool(ari == 1.0 and f1 == 1.0)}
 
 
 def _mean(rows: list[dict[str, Any]], keys: tuple[str, ...]) -> dict[str, Any]:
@@ -90,16 +68,13 @@ def _random_figures(ctx: Context, n_quick: int = 8, n_full: int = 20) -> Iterato
 
 # ------------------------------------------------------------------ structure
 def case_structure_random3d(ctx: Context) -> Iterator[dict[str, Any]]:
-    rows, notes = [], set()
+    rows = []
     for seed, traj in _random_figures(ctx):
         skel, timing = ctx.measure(lambda: sf.fit(traj, method="em", random_state=seed))
-        s = _score(skel, traj)
-        notes.add(s.pop("notes", ""))
-        rows.append({**s, **timing})
+        rows.append({**_score(skel, traj), **timing})
     yield {"dataset": "random_figure 3D", "method": "em",
            **_mean(rows, ("ari", "misclassification", "edge_f1", "exact", "time_s", "time_ratio", "peak_mb")),
-           "notes": f"mean of {len(rows)} figures (3-7 sticks, 90-180 frames, 5-9 pts/stick, 1% noise) "
-                    + " ".join(n for n in notes if n)}
+           "notes": f"mean of {len(rows)} figures (3-7 sticks, 90-180 frames, 5-9 pts/stick, 1% noise)"}
 
 
 # ----------------------------------------------------------------- imputation

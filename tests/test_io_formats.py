@@ -62,7 +62,7 @@ def test_hopkins_optional_fields(tmp_path):
 
 
 def test_hopkins_matlab_v73(tmp_path):
-    h5py = pytest.importorskip("h5py")
+    import h5py
     path = tmp_path / "v73_truth.mat"
     y = np.concatenate([np.arange(30.0).reshape(2, 5, 3), np.ones((1, 5, 3))])
     with h5py.File(path, "w", userblock_size=512) as f:
@@ -111,7 +111,7 @@ def test_sleap_clip(data_dir):
 
 def _write_slp(path, format_id=1.2, with_video_shape=True):
     """A small SLEAP file from scratch: 3 nodes, untracked instances, a gap, a prediction."""
-    h5py = pytest.importorskip("h5py")
+    import h5py
     reduce = lambda k: {"py/reduce": [{"py/type": "sleap.skeleton.EdgeType"}, {"py/tuple": [k]}]}  # noqa: E731
     meta = {
         "version": "2.0.0",

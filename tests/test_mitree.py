@@ -316,7 +316,6 @@ def test_bad_input():
 
 
 def test_default_segmentation_runs():
-    pytest.importorskip("stickfigure.segmentation")
     traj = torso5(seed=0, frames=60)
     skel = sf.fit(traj, method="mi-tree", random_state=0)
     assert skel.info["segmentation"] == "affinity_propagation"
@@ -324,7 +323,6 @@ def test_default_segmentation_runs():
 
 
 def test_heat_map_and_tree_plot():
-    pytest.importorskip("matplotlib")
     from stickfigure.plot import mitree as plot_mitree
 
     traj = torso5(seed=0, frames=40)

@@ -13,21 +13,8 @@ from stickfigure.report import write_report
 
 #: The method the pipeline tests fit end to end without help (no given segmentation): the paper's
 #: method for the known-answer test, the quickest one for the wiring test.
-END_TO_END = next((m for m in ("em", "multibody-sfm", "yan-pollefeys") if m in sf.available_methods()), None)
-QUICK = next((m for m in ("multibody-sfm", "yan-pollefeys", "mi-tree", "em") if m in sf.available_methods()), None)
-
-
-def _needs_end_to_end(fn):
-    return pytest.mark.skipif(END_TO_END is None, reason="no method that segments by itself is installed yet")(fn)
-
-
-def _segmentable(method: str) -> bool:
-    """Whether ``method`` can segment tracks by itself here (its shared segmentation module is installed)."""
-    try:
-        sf.fit(sf.synthetic.random_figure(n_sticks=2, frames=20, seed=0), method=method, random_state=0)
-    except ModuleNotFoundError:
-        return False
-    return True
+END_TO_END = "em"
+QUICK = "multibody-sfm"
 
 
 def _video_frames(path):
@@ -101,9 +88,8 @@ def test_unknown_method_fails_before_tracking(tmp_path):
     bad.write_bytes(b"not a video")
     with pytest.raises(ValueError, match="unknown method"):
         learn(bad, tmp_path / "o", method="no-such-method")
-    if QUICK is not None:
-        with pytest.raises(ValueError, match="broken.mp4"):
-            learn(bad, tmp_path / "o", method=QUICK)
+    with pytest.raises(ValueError, match="broken.mp4"):
+        learn(bad, tmp_path / "o", method=QUICK)
 
 
 def _arm_angles(f, n):
@@ -138,10 +124,7 @@ def _two_limb_video(path, n=60):
     return path
 
 
-@_needs_end_to_end
 def test_learn_from_video(tmp_path):
-    if not _segmentable(QUICK):
-        pytest.skip(f"{QUICK} cannot segment yet (stickfigure.segmentation is not installed)")
     video = _two_limb_video(tmp_path / "arm.avi")
     out = learn(video, tmp_path / "o", method=QUICK, max_points=40)
     assert {"tracks", "points", "model", "animation", "report"} <= set(out)
@@ -211,7 +194,6 @@ def _walker_video(path, n_frames=80, seed=0, W=480, H=360):
 
 
 @pytest.mark.slow
-@_needs_end_to_end
 def test_learn_walker_video_known_answer(tmp_path):
     """A rendered walking figure: tracked, selected and fitted from the video alone, scored against its limbs."""
     from sklearn.metrics import adjusted_rand_score
@@ -236,7 +218,6 @@ def test_learn_walker_video_known_answer(tmp_path):
 
 @pytest.mark.data
 @pytest.mark.slow
-@_needs_end_to_end
 def test_learn_bikes(tmp_path, data_dir):
     out = learn(data_dir / "video" / "bikes.mp4", tmp_path / "bikes", method=END_TO_END)
     skel = sf.Skeleton.load(out["model"])

@@ -106,7 +106,6 @@ def test_missing_data_with_given_labels():
 
 
 def test_end_to_end_segmentation():
-    pytest.importorskip("stickfigure.segmentation")
     traj = sf.synthetic.random_figure(n_sticks=3, frames=100, noise=0.005, seed=6, points_per_stick=10)
     est = sf.get_method("yan-pollefeys")(random_state=0).fit(traj)
     assert est.affinity_.shape == (traj.n_points, traj.n_points)

@@ -48,10 +48,6 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"stickfigure: error: {message}{hint}\n")
 
 
-class _Unavailable(Exception):
-    """A command whose library part is not installed (exit status 1)."""
-
-
 # ------------------------------------------------------------- option values
 def _value(text: str) -> Any:
     """A command-line value: JSON or a Python literal (numbers, true/false, lists), else the string."""
@@ -157,7 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
             "  stickfigure demo\n  stickfigure demo -o demo/ --figure walker --seed 3\n")
     p.add_argument("-o", "--output", default="stickfigure-demo", metavar="DIR",
                    help="output folder (default: stickfigure-demo)")
-    p.add_argument("--method", help="method to fit (default: em, or multibody-sfm where em is not installed)")
+    p.add_argument("--method", help="method to fit (default: em)")
     p.add_argument("--seed", type=int, default=0, help="seed of the figure and the method (default 0)")
     p.add_argument("--figure", choices=("walker", "random"), default=None,
                    help="the built-in figure: a random 3D tree of 5 sticks (default) or a walking person "
@@ -459,19 +455,6 @@ def _format_table(rows: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _as_mapping(result: Any, name: str) -> dict[str, Any]:
-    """A library result as a dict: a mapping, a dataclass, or a single number called ``name``."""
-    import dataclasses
-
-    if isinstance(result, dict):
-        return dict(result)
-    if dataclasses.is_dataclass(result) and not isinstance(result, type):
-        return dataclasses.asdict(result)
-    if hasattr(result, "_asdict"):
-        return dict(result._asdict())
-    return {name: result}
-
-
 def _jsonable(v: Any) -> Any:
     import numpy as np
 
@@ -487,28 +470,20 @@ def _jsonable(v: Any) -> Any:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    try:
-        from .metrics import score_skeleton
-    except ModuleNotFoundError as exc:
-        if exc.name != "stickfigure.metrics":
-            raise
-        raise _Unavailable("evaluate needs stickfigure.metrics, which is not installed") from None
+    from .metrics import score_skeleton
+
     skeleton = _load_model(args.model)
     traj = _load_input(args, args.input)
     _check_match(skeleton, traj, args.input)
     if traj.labels_true is None:
         raise ValueError(f"{Path(args.input).name} has no ground truth (labels_true) to score against")
-    scores = _jsonable(_as_mapping(score_skeleton(skeleton, traj), "score"))
+    scores = _jsonable(score_skeleton(skeleton, traj))
     if args.protocol:
-        try:
-            from .evaluation import imputation_protocol
-        except ModuleNotFoundError as exc:
-            if exc.name != "stickfigure.evaluation":
-                raise
-            raise _Unavailable("--protocol needs stickfigure.evaluation, which is not installed") from None
+        from .evaluation import imputation_protocol
+
         # The held-out test re-learns the model's method (default parameters) on the first 70% of frames.
         result = imputation_protocol(traj, method=skeleton.method, random_state=0)
-        scores["protocol"] = _jsonable(_as_mapping(result, "rmse"))
+        scores["protocol"] = _jsonable({k: v for k, v in result.items() if k not in ("skeleton", "imputed")})
     if args.json:
         print(json.dumps(scores, indent=1))
     else:
@@ -640,9 +615,8 @@ def _one_line(exc: BaseException) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``stickfigure`` command; returns the exit status.
 
-    Exit status: 0 on success, 2 on bad input (one line on stderr), 1 when a
-    needed part of the library is not installed or an output cannot be
-    written, 130 on Ctrl-C.
+    Exit status: 0 on success, 2 on bad input (one line on stderr), 1 when an
+    output cannot be written, 130 on Ctrl-C.
     """
     parser = build_parser()
     try:
@@ -657,11 +631,6 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         matplotlib.use("Agg")  # files only: never open a window
         return int(args.run(args) or 0)
-    except _Unavailable as exc:
-        if args.debug:
-            raise
-        print(f"stickfigure: error: {_one_line(exc)}", file=sys.stderr)
-        return 1
     except (ValueError, FileNotFoundError, TypeError, KeyError, IsADirectoryError, NotADirectoryError) as exc:
         if args.debug:
             raise

@@ -63,27 +63,8 @@ def make_figure(figure: str = DEFAULT_FIGURE, *, n_frames: int | None = None, se
 
 
 def default_method() -> str:
-    """The main method ``em`` when installed, else the ``multibody-sfm`` baseline."""
-    from .models import available_methods
-
-    known = available_methods()
-    for m in ("em", "multibody-sfm"):
-        if m in known:
-            return m
-    raise ValueError(f"the demo needs the 'em' or 'multibody-sfm' method; installed: {', '.join(known) or 'none'}")
-
-
-def _scores(skeleton: Any, traj: Any) -> dict[str, Any] | None:
-    """Scores against the truth from :mod:`stickfigure.metrics` (None when it is not installed)."""
-    try:
-        from .metrics import score_skeleton
-    except ModuleNotFoundError as exc:
-        if exc.name != "stickfigure.metrics":
-            raise
-        return None
-    from .cli import _as_mapping
-
-    return _as_mapping(score_skeleton(skeleton, traj), "score")
+    """The main method, ``em``."""
+    return "em"
 
 
 def run_demo(outdir: str | Path = "stickfigure-demo", *, method: str | None = None, seed: int = 0,
@@ -121,6 +102,7 @@ def run_demo(outdir: str | Path = "stickfigure-demo", *, method: str | None = No
 
     from . import plot
     from .export import pose as _pose
+    from .metrics import score_skeleton
 
     say = say or (lambda _msg: None)
     method = method or default_method()
@@ -158,7 +140,7 @@ def run_demo(outdir: str | Path = "stickfigure-demo", *, method: str | None = No
     plot.animate(traj, skeleton, paths["animation"], pose=pose, imputed=imputed, width=400, progress=progress,
                  follow=True)
 
-    scores = _scores(skeleton, traj)
+    scores = score_skeleton(skeleton, traj)
     view = full.meta.get("view") or DEMO_VIEW
     lines = [
         f"stickfigure demo: a synthetic {'walking figure' if figure == 'walker' else 'random figure'}",
@@ -170,14 +152,11 @@ def run_demo(outdir: str | Path = "stickfigure-demo", *, method: str | None = No
         skeleton.summary(),
         "",
     ]
-    if scores is None:
-        lines.append("scores: not computed (stickfigure.metrics is not installed)")
-    else:
-        lines.append("scores against the truth:")
-        for k in ("ari", "misclassification", "edge_precision", "edge_recall", "edge_f1", "exact"):
-            if k in scores:
-                v = scores[k]
-                lines.append(f"  {k}: {v:.3f}" if isinstance(v, float) else f"  {k}: {v}")
+    lines.append("scores against the truth:")
+    for k in ("ari", "misclassification", "edge_precision", "edge_recall", "edge_f1", "exact"):
+        if k in scores:
+            v = scores[k]
+            lines.append(f"  {k}: {v:.3f}" if isinstance(v, float) else f"  {k}: {v}")
     paths["summary"] = outdir / "summary.txt"
     from ._atomic import atomic_write_text
 

@@ -20,8 +20,8 @@ from .base import StickEstimator, available_methods, check_fit_input, get_method
 
 __all__ = ["StickEstimator", "available_methods", "check_fit_input", "get_method", "register"]
 
-# Modules that define registered methods. A module that is not there yet is
-# skipped, so the registry lists exactly what is installed.
+# Modules that define registered methods; imported on first use of the registry
+# (they import plotting-free but heavy code, so not at package import).
 _METHOD_MODULES = ("sfm", "em", "mcmc", "mitree", "yan_pollefeys")
 _imported = False
 
@@ -30,10 +30,6 @@ def _import_methods() -> None:
     global _imported
     if _imported:
         return
-    _imported = True
     for mod in _METHOD_MODULES:
-        try:
-            importlib.import_module(f"{__name__}.{mod}")
-        except ModuleNotFoundError as exc:
-            if exc.name != f"{__name__}.{mod}":
-                raise
+        importlib.import_module(f"{__name__}.{mod}")
+    _imported = True

@@ -82,10 +82,8 @@ def _joint_angles(skeleton: Skeleton, traj: Trajectories) -> tuple[np.ndarray | 
     Signed 2D angles are unwrapped over time, so a joint swinging through
     ±180° shows its real range instead of jumping from one end to the other.
     """
-    try:
-        from ..export import joint_angles
-    except ImportError:
-        return None, "joint angles need stickfigure.export, which is not installed"
+    from ..export import joint_angles
+
     try:
         angles, _ = joint_angles(skeleton, traj)
     except Exception as exc:
@@ -288,21 +286,21 @@ def _quality(q: dict[str, Any]) -> str:
             rows.append(("share of them the model could fill", hid["filled_fraction"], ""))
     tr = q.get("truth")
     if tr:
-        if "ari" in tr:
-            rows.append(("adjusted Rand index against the true parts", tr["ari"], ""))
-        if "misclassification" in tr:
-            rows.append(("misclassification rate (best matching of sticks to parts)", tr["misclassification"], ""))
-        for k, v in (tr.get("edges") or {}).items():
-            if isinstance(v, (int, float)):
-                rows.append((f"tree vs true tree: {k}", v, ""))
+        for key, label in (("ari", "adjusted Rand index against the true parts"),
+                           ("misclassification", "misclassification rate (best matching of sticks to parts)"),
+                           ("edge_precision", "tree vs true tree: edge precision"),
+                           ("edge_recall", "tree vs true tree: edge recall"),
+                           ("edge_f1", "tree vs true tree: edge F1"),
+                           ("exact", "exact structure (sticks one-to-one with parts, same tree)"),
+                           ("joint_error", "mean distance of learned joints from the true ones")):
+            if key in tr:
+                rows.append((label, tr[key], unit if key == "joint_error" else ""))
     body = table(["measure", "value", ""], rows, numeric=[False, True, False]) if rows else ""
     for k in ("fit_rmse_error", "impute_error", "hidden_error"):
         if k in q:
             body += f'<p class="warn">{esc(k.split("_")[0])}: {esc(q[k])}</p>'
-    if tr:
-        for k in ("ari_error", "misclassification_error", "edges_error"):
-            if k in tr:
-                body += f'<p class="warn">{esc(tr[k])}</p>'
+    if tr and "error" in tr:
+        body += f'<p class="warn">scores against the truth: {esc(tr["error"])}</p>'
     if imp:
         better = imp["rmse"] is not None and imp["rmse"] < imp["interp_rmse"]
         body += ('<p class="note">Hidden entries are chosen at random (seeded) among the observed ones; the model keeps '

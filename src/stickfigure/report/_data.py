@@ -320,35 +320,10 @@ def quality(skeleton: Skeleton, traj: Trajectories, *, hide: float = 0.1, seed: 
 
 
 def _truth_scores(skeleton: Skeleton, traj: Trajectories) -> dict[str, Any]:
-    """Segmentation and structure scores against the data's ground truth (stickfigure.metrics when present)."""
-    known = traj.labels_true >= 0
-    res: dict[str, Any] = {"n_parts_true": traj.n_parts_true}
-    try:
-        from .. import metrics  # type: ignore[attr-defined]
-    except ImportError:
-        metrics = None
-    if metrics is not None:
-        for name, fn_names in (("ari", ("adjusted_rand_index", "ari")),
-                               ("misclassification", ("misclassification_rate", "misclassification"))):
-            for fn in fn_names:
-                if hasattr(metrics, fn):
-                    try:
-                        res[name] = float(getattr(metrics, fn)(traj.labels_true[known], skeleton.labels[known]))
-                    except Exception as exc:
-                        res[f"{name}_error"] = str(exc)
-                    break
-        if traj.edges_true is not None:
-            for fn in ("edge_scores", "edge_prf", "structure_scores"):
-                if hasattr(metrics, fn):
-                    try:
-                        r = getattr(metrics, fn)(skeleton, traj)
-                        res["edges"] = {k: (float(v) if isinstance(v, (int, float, np.floating, np.integer))
-                                            else v) for k, v in dict(r).items()}
-                    except Exception as exc:
-                        res["edges_error"] = str(exc)
-                    break
-    if "ari" not in res:
-        from sklearn.metrics import adjusted_rand_score
+    """Segmentation, structure and joint scores against the data's ground truth (:func:`metrics.score_skeleton`)."""
+    from ..metrics import score_skeleton
 
-        res["ari"] = float(adjusted_rand_score(traj.labels_true[known], skeleton.labels[known]))
-    return res
+    try:
+        return score_skeleton(skeleton, traj)
+    except ValueError as exc:  # e.g. joints over other frames than the truth's
+        return {"n_parts_true": traj.n_parts_true, "error": str(exc)}
