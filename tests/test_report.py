@@ -246,6 +246,9 @@ def _chromium() -> str | None:
 
 
 CHROMIUM = _chromium()
+if CHROMIUM is None and os.environ.get("STICKFIGURE_REQUIRE_BROWSER"):
+    raise RuntimeError("STICKFIGURE_REQUIRE_BROWSER is set but no Chromium was found (apt-get install -y chromium "
+                       "or set STICKFIGURE_CHROMIUM)")
 needs_browser = pytest.mark.skipif(
     CHROMIUM is None,
     reason="no headless Chromium found: install Debian's chromium (apt-get install -y chromium) "
