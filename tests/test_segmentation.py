@@ -147,3 +147,17 @@ def test_affinity_propagation_segments_over_20_random_figures():
     # measured on other seeds: mean ARI 0.95, count right 90-93% (see docs/geometry.md)
     assert np.mean(aris) > 0.92
     assert np.mean(right) >= 0.8
+
+
+def test_merge_bodies_joins_pieces_of_one_body_not_two_bodies():
+    tr = sf.synthetic.rigid_bodies(3, frames=40, noise=0.01, seed=2, points_per_body=20, perspective=0.15)
+    lab = tr.labels_true.copy()
+    piece = np.flatnonzero(lab == 0)[:10]
+    lab[piece] = 3  # body 0 cut in two
+    merged = seg.merge_bodies(tr.xy, lab, sigma=tr.meta["noise_std"])
+    assert adjusted_rand_score(tr.labels_true, merged) == 1.0
+    # the true bodies stay apart
+    kept = seg.merge_bodies(tr.xy, tr.labels_true, sigma=tr.meta["noise_std"])
+    assert adjusted_rand_score(tr.labels_true, kept) == 1.0
+    with pytest.raises(ValueError, match="ratio"):
+        seg.merge_bodies(tr.xy, lab, ratio=1.0)

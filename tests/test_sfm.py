@@ -112,3 +112,12 @@ def test_multibody_sfm_on_hopkins(data_dir, name):
     skel = sf.fit(tr, method="multibody-sfm", random_state=0)
     assert skel.n_sticks == tr.n_parts_true
     assert metrics.misclassification_rate(tr.labels_true, skel.labels) <= 0.05
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_multibody_sfm_under_perspective(seed):
+    """A body that the affine camera does not fit exactly is still one body (merge_bodies)."""
+    tr = sf.synthetic.rigid_bodies(3, frames=40, noise=0.01, seed=seed, points_per_body=(15, 30), perspective=0.1)
+    skel = sf.fit(tr, method="multibody-sfm", random_state=0)
+    assert skel.n_sticks == 3
+    assert metrics.misclassification_rate(tr.labels_true, skel.labels) <= 0.02

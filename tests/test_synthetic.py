@@ -65,3 +65,33 @@ def test_occlude_hides_ten_to_fifteen_percent():
     f_early, f_late = 10, 90
     if bar[:, f_early].any() and bar[:, f_late].any():
         assert t.xy[bar[:, f_early], f_early, 0].mean() < t.xy[bar[:, f_late], f_late, 0].mean()
+
+
+def _singular_values(xy):
+    X = np.concatenate([xy[..., 0], xy[..., 1]], axis=1).T  # (2F, P)
+    return np.linalg.svd(X - X.mean(axis=1, keepdims=True), compute_uv=False)
+
+
+def test_rigid_bodies_are_affine_bodies_and_perspective_breaks_that():
+    tr = sf.synthetic.rigid_bodies(3, frames=40, noise=0.0, seed=1, points_per_body=12)
+    assert tr.shape == (36, 40, 2) and tr.n_parts_true == 3 and tr.edges_true == []
+    for b in range(3):
+        s = _singular_values(tr.xy[tr.labels_true == b])
+        assert s[3] < 1e-9 * s[0] and s[2] > 1e-3 * s[0]  # exactly rank 3 under the affine camera
+    # the bodies move independently: together they need more than one body's rank
+    assert _singular_values(tr.xy)[6] > 1e-3 * _singular_values(tr.xy)[0]
+    pe = sf.synthetic.rigid_bodies(3, frames=40, noise=0.0, seed=1, points_per_body=12, perspective=0.2)
+    s = _singular_values(pe.xy[pe.labels_true == 0])
+    assert s[3] > 1e-4 * s[0]
+    noisy = sf.synthetic.rigid_bodies(2, frames=30, noise=0.02, seed=0)
+    assert noisy.meta["noise_std"] > 0
+    np.testing.assert_array_equal(noisy.xy, sf.synthetic.rigid_bodies(2, frames=30, noise=0.02, seed=0).xy)
+
+
+def test_rigid_bodies_errors():
+    with pytest.raises(ValueError, match="perspective"):
+        sf.synthetic.rigid_bodies(2, perspective=0.9)
+    with pytest.raises(ValueError, match="frames"):
+        sf.synthetic.rigid_bodies(2, frames=1)
+    with pytest.raises(ValueError, match="points_per_body"):
+        sf.synthetic.rigid_bodies(2, points_per_body=(5, 3))

@@ -195,7 +195,10 @@ class Skeleton:
             raise ValueError(f"traj is {traj.n_dims}D, but the skeleton was fitted to {self.n_dims}D data")
         from .models import get_method
 
-        filled = np.asarray(get_method(self.method).impute_skeleton(self, traj), dtype=float)
+        from ._threads import blas_threads
+
+        with blas_threads():
+            filled = np.asarray(get_method(self.method).impute_skeleton(self, traj), dtype=float)
         if filled.shape != traj.xy.shape:
             raise RuntimeError(f"{self.method} imputation returned shape {filled.shape}, expected {traj.xy.shape}")
         obs = traj.observed

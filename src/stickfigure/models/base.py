@@ -18,6 +18,7 @@ from typing import Any, Callable, ClassVar, TypeVar
 import numpy as np
 from sklearn.base import BaseEstimator
 
+from .._threads import blas_threads
 from .._validation import check_random_state
 from ..skeleton import Skeleton
 from ..trajectories import Trajectories, as_trajectories
@@ -125,7 +126,8 @@ class StickEstimator(BaseEstimator):
         """
         traj = check_fit_input(X, min_points=self.min_points, min_frames=self.min_frames, method=self.method_name)
         rng = check_random_state(getattr(self, "random_state", None))
-        skeleton = self._fit(traj, rng)
+        with blas_threads():
+            skeleton = self._fit(traj, rng)
         skeleton.params = {**self.get_params(deep=False), **skeleton.params}
         skeleton.params.pop("random_state", None)
         skeleton.params["random_state"] = _seed_repr(getattr(self, "random_state", None))
