@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import zipfile
 
 import numpy as np
@@ -200,6 +201,13 @@ def test_save_errors_and_atomicity(tmp_path):
     save(traj.slice(frames=slice(0, 4)), tmp_path / "t.csv")
     assert load(tmp_path / "t.csv").n_frames == 4
     assert [p.name for p in tmp_path.iterdir()] == ["t.csv"]
+    # an atomic write still gets the permissions a plain open() would give (not mkstemp's 0600)
+    mask = os.umask(0o022)
+    try:
+        save(traj, tmp_path / "perm.npz")
+    finally:
+        os.umask(mask)
+    assert (tmp_path / "perm.npz").stat().st_mode & 0o777 == 0o644
 
 
 def test_npz_is_a_zip_of_plain_arrays(tmp_path):
