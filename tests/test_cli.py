@@ -274,6 +274,20 @@ def test_learn(work, tmp_path, capsys):
     assert (tmp_path / "out" / "report.html").exists()
 
 
+@pytest.mark.parametrize("content", [b"", b"this is not a video\n" * 50])
+def test_learn_unreadable_video_one_line(content, tmp_path, capfd):
+    """A broken video: exit 2, one line on the process's stderr (FFmpeg's own complaints
+    silenced too), and no output folder left behind."""
+    video = tmp_path / "broken.mp4"
+    video.write_bytes(content)
+    out = tmp_path / "out"
+    assert main(["-q", "learn", str(video), "-o", str(out)]) == 2
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert err[0].startswith("stickfigure: error: ") and "broken.mp4" in err[0]
+    assert not out.exists()
+
+
 def _run_demo(out, capsys, *argv):
     assert main(["-q", "demo", "-o", str(out), *argv]) == 0
     printed = capsys.readouterr().out

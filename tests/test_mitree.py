@@ -313,6 +313,27 @@ def test_bad_input():
         sf.fit(traj, method="mi-tree", labels=traj.labels_true, threshold=-1)
     with pytest.raises(ValueError, match="reference_frame"):
         sf.fit(traj, method="mi-tree", labels=traj.labels_true, reference_frame=99)
+    with pytest.raises(ValueError, match="n_references"):
+        sf.fit(traj, method="mi-tree", labels=traj.labels_true, n_references=0)
+
+
+def test_entropies_averaged_over_reference_frames():
+    """The default averages the entropies of several reference frames; one reference
+    frame reproduces the single-t1 estimate of mutual_information_matrix."""
+    from stickfigure.models import mitree
+
+    traj = torso5(seed=3, frames=60)
+    poses = mitree.fit_spm_poses(traj.xy, traj.labels_true, 5)
+    refs = mitree.reference_frames(poses, 5)
+    assert len(refs) == 5 and refs == sorted(set(refs)) and refs[0] == 0 and refs[-1] == 59
+    assert mitree.reference_frames(poses, 1) == [0]
+    skel = sf.fit(traj, method="mi-tree", labels=traj.labels_true)
+    assert skel.info["reference_frames"] == refs
+    runs = [mitree.mutual_information_matrix(poses, reference_frame=r, threshold=2.0)[1]["conditional_entropy"] for r in refs]
+    np.testing.assert_allclose(skel.state["conditional_entropy"], np.mean(runs, axis=0))
+    one = sf.fit(traj, method="mi-tree", labels=traj.labels_true, n_references=1)
+    single = mitree.mutual_information_matrix(poses, reference_frame=0, threshold=2.0)[1]["conditional_entropy"]
+    np.testing.assert_allclose(one.state["conditional_entropy"], single)
 
 
 def test_default_segmentation_runs():

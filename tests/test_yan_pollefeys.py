@@ -115,6 +115,23 @@ def test_end_to_end_segmentation():
     np.testing.assert_array_equal(a.labels, est.skeleton_.labels)  # same seed, same answer
 
 
+def test_number_of_parts_estimated():
+    """The LSA's eigengap says one part on every random figure; the BIC over the
+    spectral clusterings must find several and segment far better than one part."""
+    from sklearn.metrics import adjusted_rand_score
+
+    found, ari = [], []
+    for seed in range(3):
+        traj = sf.synthetic.random_figure(n_sticks=4, frames=100, noise=0.01, seed=seed)
+        skel = sf.fit(traj, method="yan-pollefeys", random_state=0)
+        sel = skel.info["n_segments_selection"]
+        assert sel["chosen"] == skel.n_sticks and len(sel["bic"]) >= 4
+        found.append(skel.n_sticks)
+        ari.append(adjusted_rand_score(traj.labels_true, skel.labels))
+    assert min(found) >= 2 and max(found) <= 8
+    assert np.mean(ari) >= 0.3
+
+
 def test_bad_input():
     traj = sf.synthetic.random_figure(n_sticks=2, frames=30, seed=0)
     with pytest.raises(ValueError, match="n_segments"):

@@ -148,7 +148,7 @@ def learn(
     outdir = Path(outdir)
     if outdir.exists() and not outdir.is_dir():
         raise ValueError(f"outdir exists and is not a folder: {outdir}")
-    outdir.mkdir(parents=True, exist_ok=True)
+    # The folder is made once the input has been read, so a bad input leaves nothing behind.
     start, stop = _frame_range(frames)
     out: dict[str, Path] = {}
     t0 = time.perf_counter()
@@ -166,6 +166,7 @@ def learn(
             tr = traj.meta["tracking"]
             _say(progress, f"{tr['kept']} tracks over {traj.n_frames} frames "
                            f"({100 * traj.missing_fraction:.0f}% missing) in {tr['seconds']:.1f} s")
+            outdir.mkdir(parents=True, exist_ok=True)
             out["tracks"] = Path(sf.save(traj, outdir / "tracks.npz") or outdir / "tracks.npz")
             tracked = True
         else:
@@ -186,6 +187,7 @@ def learn(
         w = traj.meta["window"]
         _say(progress, f"learning from {w['points']} of {w['of_points']} points over frames "
                        f"{traj.meta.get('frame_offset', 0)}-{traj.meta.get('frame_offset', 0) + traj.n_frames - 1}")
+    outdir.mkdir(parents=True, exist_ok=True)
     out["points"] = Path(sf.save(traj, outdir / "points.npz") or outdir / "points.npz")
 
     _say(progress, f"fitting {method} to {traj.n_points} points x {traj.n_frames} frames")

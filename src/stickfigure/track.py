@@ -66,6 +66,9 @@ VIDEO_SUFFIXES = frozenset({".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".m
 
 
 def _cv2() -> Any:
+    # FFmpeg prints its own complaints ("moov atom not found") on stderr before OpenCV
+    # reports failure; the tracker's one-line error says it instead. A user's setting wins.
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
     import cv2
 
     return cv2

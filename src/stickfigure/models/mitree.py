@@ -51,6 +51,7 @@ __all__ = [
     "motion_entropy",
     "mutual_information_matrix",
     "maximum_spanning_tree",
+    "reference_frames",
     "fixed_points",
     "IDENTITY",
     "TRANSLATION",
@@ -716,6 +717,25 @@ def mutual_information_matrix(poses: SPMPoses, *, reference_frame: int | None = 
     return mi, info
 
 
+def reference_frames(poses: SPMPoses, n: int) -> list[int]:
+    """``n`` reference frames spread evenly over the frames in which the most segments were fitted.
+
+    The first is the first such frame (the single ``t1`` of
+    :func:`mutual_information_matrix`'s default); with ``n`` larger than the
+    number of such frames, each is used once.
+
+    Returns
+    -------
+    list of int, sorted
+    """
+    count = poses.fitted.sum(axis=0)
+    cand = np.flatnonzero(count == count.max())
+    if n <= 1 or cand.size == 1:
+        return [int(cand[0])]
+    pick = np.unique(np.round(np.linspace(0, cand.size - 1, min(n, cand.size))).astype(int))
+    return [int(f) for f in cand[pick]]
+
+
 def maximum_spanning_tree(weights: np.ndarray) -> list[tuple[int, int]]:
     """Edges (i < j) of the maximum spanning tree of a symmetric weight matrix (networkx, Kruskal).
 
@@ -848,8 +868,17 @@ class MITree(StickEstimator):
         Noise multiple below which a rotation/scale or a displacement is treated
         as absent (pure translation, identity; :func:`classify_motions`).
     reference_frame : int, optional
-        The frame ``t1`` motions are measured from (eq. 15); by default the first
-        frame in which the most segments are visible.
+        The frame ``t1`` motions are measured from (eq. 15). By default every
+        entropy is the mean of its estimates from ``n_references`` reference
+        frames spread evenly over the frames in which the most segments are
+        visible (the first of them is ``t1`` for the joints).
+    n_references : int
+        Reference frames averaged over when ``reference_frame`` is omitted (1:
+        only the first frame with the most segments visible, the paper's single
+        ``t1``). The relative motion's entropy does not depend on ``t1``, but its
+        estimate does: averaging over 5 raised the mean edge F1 on five sets of
+        40 random 3D figures from 0.927 (worst set 0.862) to 0.949 (worst 0.922;
+        ``docs/mitree.md``).
     noise : float, optional
         Point noise standard deviation in data units; estimated from the
         similarity-fit residuals when omitted.
@@ -874,7 +903,7 @@ class MITree(StickEstimator):
 
     def __init__(self, labels: Any = None, *, tree: str = "conditional_entropy", kernel: str = "heteroscedastic",
                  bandwidth: str = "scott", log_det_correction: bool = True, threshold: float = 2.0,
-                 reference_frame: int | None = None, noise: float | None = None,
+                 reference_frame: int | None = None, n_references: int = 5, noise: float | None = None,
                  random_state: Any = None, progress: bool = False) -> None:
         self.labels = labels
         self.tree = tree
@@ -883,6 +912,7 @@ class MITree(StickEstimator):
         self.log_det_correction = log_det_correction
         self.threshold = threshold
         self.reference_frame = reference_frame
+        self.n_references = n_references
         self.noise = noise
         self.random_state = random_state
         self.progress = progress
@@ -892,6 +922,7 @@ class MITree(StickEstimator):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}")
         check_positive(self.threshold, "threshold")
+        check_positive(self.n_references, "n_references", integer=True)
         if self.noise is not None:
             check_positive(self.noise, "noise")
 
@@ -928,10 +959,16 @@ class MITree(StickEstimator):
         info: dict[str, Any] = dict(seg_info, noise=poses.noise, tree=self.tree, kernel=self.kernel,
                                     bandwidth=self.bandwidth, log_det_correction=bool(self.log_det_correction))
         if S >= 2:
-            mi, mi_info = mutual_information_matrix(poses, reference_frame=self.reference_frame,
-                                                    bandwidth=self.bandwidth, kernel=self.kernel,
-                                                    log_det_correction=self.log_det_correction,
-                                                    threshold=self.threshold)
+            refs = ([self.reference_frame] if self.reference_frame is not None
+                    else reference_frames(poses, int(self.n_references)))
+            runs = [mutual_information_matrix(poses, reference_frame=r, bandwidth=self.bandwidth, kernel=self.kernel,
+                                              log_det_correction=self.log_det_correction, threshold=self.threshold)
+                    for r in refs]
+            mi_info = dict(runs[0][1])  # t1 (joints) and the type fractions from the first reference
+            mi = np.mean([m for m, _ in runs], axis=0)
+            mi_info["entropy"] = np.mean([d["entropy"] for _, d in runs], axis=0)
+            mi_info["conditional_entropy"] = np.mean([d["conditional_entropy"] for _, d in runs], axis=0)
+            info["reference_frames"] = [int(d["reference_frame"]) for _, d in runs]
             Hc = np.asarray(mi_info["conditional_entropy"])
             weights = mi if self.tree == "mutual_information" else -Hc
             tree = maximum_spanning_tree(weights)
