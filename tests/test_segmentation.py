@@ -161,3 +161,31 @@ def test_merge_bodies_joins_pieces_of_one_body_not_two_bodies():
     assert adjusted_rand_score(tr.labels_true, kept) == 1.0
     with pytest.raises(ValueError, match="ratio"):
         seg.merge_bodies(tr.xy, lab, ratio=1.0)
+
+
+def test_gram_residuals_match_direct_fits():
+    """The inner-product (Gram) fits give the residuals of explicit SVD fits, and the cache is transparent."""
+    from stickfigure import segmentation as seg
+
+    rng = np.random.default_rng(5)
+    X = rng.normal(size=(60, 12))
+    idx = np.array([1, 3, 4, 7, 8, 10])
+    mu = X[:, idx].mean(axis=1, keepdims=True)
+    U, _, _ = np.linalg.svd(X[:, idx] - mu, full_matrices=False)
+    B = U[:, :3]
+    Y = X - mu
+    direct = np.sum(Y * Y, axis=0) - np.sum((B.T @ Y) ** 2, axis=0)
+    np.testing.assert_allclose(seg._affine_fit_residuals(X, idx, 3), direct, rtol=1e-9, atol=1e-9)
+    M = seg._Meas(X)
+    assert seg._own_rss(M, idx, 3) == pytest.approx(direct[idx].sum(), rel=1e-9)
+    loo = seg._loo_residuals(X[:, idx], 3)
+    for j, p in enumerate(idx):
+        others = np.delete(idx, j)
+        assert loo[j] == pytest.approx(seg._affine_fit_residuals(X, others, 3)[p], rel=1e-9)
+    labels = np.array([0, 0, 1, 1, 1, 0, 2, 2, 0, 1, 2, 2])
+    R1 = seg._subspace_residuals(M, labels, 3, 2)
+    R2 = seg._subspace_residuals(M, labels, 3, 2)  # from the cache
+    np.testing.assert_array_equal(R1, R2)
+    np.testing.assert_allclose(R1, seg._subspace_residuals(X, labels, 3, 2))
+    med = seg._member_medians(R1, labels, 3)
+    np.testing.assert_allclose(med, [np.median(R1[c, labels == c]) for c in range(3)])

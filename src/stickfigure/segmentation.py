@@ -166,19 +166,88 @@ def _jlinkage(inliers: np.ndarray) -> np.ndarray:
 
 
 # ---------------------------------------------------------------- refinement
-def _affine_fit_residuals(X: np.ndarray, idx: np.ndarray, rank: int) -> np.ndarray:
-    """Squared residual (P,) of every column of X to the affine rank-r fit of columns ``idx``."""
-    mu = X[:, idx].mean(axis=1, keepdims=True)
-    Y = X - mu
-    r = min(rank, idx.size - 1)
+class _Meas:
+    """A measurement matrix X (FD, P) with its Gram matrix ``X^T X`` (P, P), computed once.
+
+    Every affine fit below needs only inner products of trajectories, so with
+    the Gram matrix at hand a fit costs O(n^3 + n P) for a cluster of n points,
+    independent of the number of frames (a fit on X itself costs O(F D n^2)
+    per SVD, and the refinement runs thousands of them).
+    """
+
+    __slots__ = ("X", "G", "FD", "P", "diag", "cache")
+
+    def __init__(self, X: np.ndarray) -> None:
+        self.X = X
+        self.G = X.T @ X
+        self.FD, self.P = X.shape
+        self.diag = np.diag(self.G).copy()
+        # Residual rows of clusters already fitted: the refinement and the rigidity search
+        # re-fit the same clusters again and again (most clusters of a trial partition are
+        # unchanged), so each distinct cluster is fitted once.
+        self.cache: dict[tuple, np.ndarray] = {}
+
+
+def _as_meas(X: Any) -> _Meas:
+    return X if isinstance(X, _Meas) else _Meas(np.asarray(X, dtype=float))
+
+
+def _centred_fit(M: _Meas, idx: np.ndarray, rank: int, cols: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Centred Gram of the columns ``idx``, its top-``rank`` eigenpairs and the centred products with ``cols``.
+
+    Returns ``(lam (r,), V (n, r), C (n, m))`` where ``C[i, j] = (x_idx_i - mu) . (x_cols_j - mu)``
+    and ``mu`` is the mean of the columns ``idx``; the principal directions of the
+    fit are ``(X_idx - mu) V / sqrt(lam)``.
+    """
+    Gi = M.G[idx] if cols is None else M.G[np.ix_(idx, np.concatenate([idx, cols]))]
+    n = idx.size
+    m = Gi.mean(axis=0)  # x_j . mu
+    mi = m[:n] if cols is not None else m[idx]
+    mm = float(mi.mean())  # mu . mu
+    C = Gi - mi[:, None] - m[None, :] + mm
+    Gc = C[:, :n] if cols is not None else C[:, idx]
+    r = min(rank, n - 1)
     if r <= 0:
-        return np.sum(Y * Y, axis=0)
-    U, _, _ = np.linalg.svd(Y[:, idx], full_matrices=False)
-    B = U[:, :r]
-    return np.maximum(np.sum(Y * Y, axis=0) - np.sum((B.T @ Y) ** 2, axis=0), 0.0)
+        return np.zeros(0), np.zeros((n, 0)), C
+    lam, V = np.linalg.eigh(0.5 * (Gc + Gc.T))
+    lam, V = lam[-r:], V[:, -r:]
+    return lam, V, C
 
 
-def _subspace_residuals(X: np.ndarray, labels: np.ndarray, k: int, rank: int, loo_max: int = 40
+def _affine_fit_residuals(X: Any, idx: np.ndarray, rank: int) -> np.ndarray:
+    """Squared residual (P,) of every column of X to the affine rank-r fit of columns ``idx``.
+
+    ``X`` is the measurement matrix or its :class:`_Meas`; computed from inner
+    products (see :class:`_Meas`). Directions with a numerically zero spread
+    (below 1e-12 of the largest) are not fitted.
+    """
+    M = _as_meas(X)
+    idx = np.asarray(idx)
+    lam, V, C = _centred_fit(M, idx, rank)
+    m = M.G[idx].mean(axis=0)
+    d = M.diag - 2.0 * m + float(m[idx].mean())  # |x_j - mu|^2
+    if lam.size == 0:
+        return np.maximum(d, 0.0)
+    ok = lam > 1e-12 * max(float(lam[-1]), 1e-300)
+    coef = (V[:, ok].T @ C) / np.sqrt(lam[ok])[:, None]
+    return np.maximum(d - np.sum(coef * coef, axis=0), 0.0)
+
+
+def _own_rss(M: _Meas, idx: np.ndarray, rank: int) -> float:
+    """Residual sum of squares of the columns ``idx`` to their own affine rank-r fit.
+
+    The sum of the centred Gram's eigenvalues beyond the top ``rank``.
+    """
+    Gi = M.G[np.ix_(idx, idx)]
+    m = Gi.mean(axis=0)
+    Gc = Gi - m[:, None] - m[None, :] + float(m.mean())
+    r = min(rank, idx.size - 1)
+    lam = np.linalg.eigvalsh(0.5 * (Gc + Gc.T))
+    return float(max(np.sum(lam[: lam.size - r]) if r > 0 else np.sum(lam), 0.0))
+
+
+def _subspace_residuals(X: Any, labels: np.ndarray, k: int, rank: int, loo_max: int = 40
                         ) -> np.ndarray:
     """Squared residual (k, P) of every trajectory (column of X) to each cluster's affine rank-r fit.
 
@@ -186,26 +255,39 @@ def _subspace_residuals(X: np.ndarray, labels: np.ndarray, k: int, rank: int, lo
     of at most ``loo_max`` points: one wrong member of a small cluster can take
     over a principal direction, fitting itself and pushing the true members out.
     """
-    P = X.shape[1]
+    M = _as_meas(X)
+    P = M.P
     R = np.full((k, P), np.inf)
     for c in range(k):  # clusters, not frames
         idx = np.flatnonzero(labels == c)
         if idx.size == 0:
             continue
-        R[c] = _affine_fit_residuals(X, idx, rank)
-        if 3 <= idx.size <= loo_max:
-            R[c, idx] = _loo_residuals(X[:, idx], rank)
+        loo = 3 <= idx.size <= loo_max
+        key = (idx.tobytes(), rank, loo)
+        row = M.cache.get(key)
+        if row is None:
+            row = _affine_fit_residuals(M, idx, rank)
+            if loo:
+                row[idx] = _loo_residuals_gram(M.G[np.ix_(idx, idx)], rank)
+            if len(M.cache) < 200_000:
+                M.cache[key] = row
+        R[c] = row
     return R
 
 
 def _loo_residuals(Xc: np.ndarray, rank: int) -> np.ndarray:
-    """Leave-one-out residual of each column of Xc (FD, n) to the affine rank-r fit of the others.
+    """Leave-one-out residual of each column of Xc (FD, n) to the affine rank-r fit of the others."""
+    return _loo_residuals_gram(Xc.T @ Xc, rank)
 
-    Batched over the left-out column with Gram matrices (n-1 x n-1 eigenproblems).
+
+def _loo_residuals_gram(G: np.ndarray, rank: int) -> np.ndarray:
+    """:func:`_loo_residuals` from the columns' Gram matrix G (n, n).
+
+    Batched over the left-out column (n-1 x n-1 eigenproblems).
     """
-    n = Xc.shape[1]
-    G = Xc.T @ Xc
-    others = np.array([np.delete(np.arange(n), j) for j in range(n)])  # (n, n-1)
+    n = G.shape[0]
+    base = np.arange(n - 1)[None, :]
+    others = base + (base >= np.arange(n)[:, None])  # (n, n-1): row j is 0..n-1 without j
     Goo = G[others[:, :, None], others[:, None, :]]  # (n, n-1, n-1)
     Goj = G[others, np.arange(n)[:, None]]  # (n, n-1): x_i . x_j
     row = Goo.mean(axis=2)  # x_i . mu
@@ -270,18 +352,40 @@ def refine_segments(
     if labels.max(initial=-1) < 0:
         raise ValueError("labels has no cluster to refine (all -1)")
     xy = geometry._complete_for_affinity(xy)
-    X = geometry.measurement_matrix(xy)
-    FD = X.shape[0]
+    return _refine(_Meas(geometry.measurement_matrix(xy)), labels, rank=rank, n_iter=n_iter, min_size=min_size,
+                   sigma=sigma)
+
+
+def _member_medians(R: np.ndarray, labels: np.ndarray, k: int) -> np.ndarray:
+    """Median of ``R[c, p]`` over the members p of each cluster c, shape (k,) (NaN for empty ones)."""
+    pts = np.flatnonzero(labels >= 0)
+    lab = labels[pts]
+    own = R[lab, pts]
+    order = np.lexsort((own, lab))
+    srt = own[order]
+    n = np.bincount(lab, minlength=k)
+    start = np.concatenate([[0], np.cumsum(n)[:-1]])
+    out = np.full(k, np.nan)
+    ok = n > 0
+    lo = start[ok] + (n[ok] - 1) // 2
+    hi = start[ok] + n[ok] // 2
+    out[ok] = 0.5 * (srt[lo] + srt[hi])
+    return out
+
+
+def _refine(M: _Meas, labels: np.ndarray, *, rank: int, n_iter: int = 20, min_size: int | None = None,
+            sigma: float | None = None) -> np.ndarray:
+    """:func:`refine_segments` on a completed measurement matrix (checked inputs)."""
+    min_size = rank + 1 if min_size is None else int(min_size)
+    labels = np.asarray(labels).copy()
+    FD = M.FD
     k = int(labels.max()) + 1
     for _ in range(n_iter):
-        R = _subspace_residuals(X, labels, k, rank)
+        R = _subspace_residuals(M, labels, k, rank)
         sizes = np.bincount(labels[labels >= 0], minlength=k)
-        var = np.empty(k)
-        for c in range(k):
-            m = labels == c
-            dof = max(FD - rank, 1)
-            # robust: the median member residual (a wrong member must not inflate the level)
-            var[c] = np.median(R[c, m]) / dof if m.sum() > rank + 1 else np.nan
+        # robust: the median member residual (a wrong member must not inflate the level)
+        var = _member_medians(R, labels, k) / max(FD - rank, 1)
+        var[sizes <= rank + 1] = np.nan
         fallback = np.nanmedian(var) if np.isfinite(var).any() else 1.0
         var = np.where(np.isfinite(var) & (var > 0), var, max(fallback, 1e-300))
         if sigma is not None:
@@ -325,14 +429,15 @@ def segment_misfit(xy: Any, labels: Any, *, rank: int = 3, sigma: float | None =
     return _misfit(X, labels, rank, float(sigma) ** 2)
 
 
-def _misfit(X: np.ndarray, labels: np.ndarray, rank: int, sig2: float) -> np.ndarray:
-    FD = X.shape[0]
+def _misfit(X: Any, labels: np.ndarray, rank: int, sig2: float) -> np.ndarray:
+    M = _as_meas(X)
+    FD = M.FD
     k = int(labels.max(initial=-1)) + 1
     out = np.full(k, np.nan)
     for c in range(k):
         idx = np.flatnonzero(labels == c)
         if idx.size > rank + 1:
-            rss = float(np.sum(_affine_fit_residuals(X[:, idx], np.arange(idx.size), rank)))
+            rss = _own_rss(M, idx, rank)
             out[c] = rss / (max(sig2, 1e-300) * (idx.size - rank - 1) * max(FD - rank, 1))
     return out
 
@@ -394,7 +499,7 @@ def merge_bodies(
     if sigma is None:
         sigma = geometry.noise_level(xyc, rank=rank)
     sig2 = float(sigma) ** 2
-    X = geometry.measurement_matrix(xyc)
+    X = _Meas(geometry.measurement_matrix(xyc))
     merged = False
     while labels.max() > 0:
         k = int(labels.max()) + 1
@@ -412,7 +517,7 @@ def merge_bodies(
         labels = _renumber(np.where(labels == best[2], best[1], labels))
         merged = True
     if merged and refine and labels.max() > 0:
-        labels = refine_segments(xyc, labels, rank=rank)
+        labels = _refine(X, labels, rank=rank)
     return labels
 
 
@@ -569,7 +674,7 @@ def affinity_propagation_segments(
         # rigidity); the partition explaining the data best wins: fewest points in
         # non-rigid parts, then the lowest BIC (the lowest residual for a fixed count).
         xyc = geometry._complete_for_affinity(xy)
-        X = geometry.measurement_matrix(xyc)
+        X = _Meas(geometry.measurement_matrix(xyc))
         sig2 = (sigma if sigma is not None else geometry.noise_level(xyc, rank=rank)) ** 2
         noise_regime, level = _noise_regime(X, starts["spectral"], inliers, rank, sig2)
         info["fit_level"] = round(level, 3) if np.isfinite(level) else None
@@ -581,7 +686,7 @@ def affinity_propagation_segments(
         for name, lab in starts.items():
             sub: dict[str, Any] = {}
             if refine:
-                lab = refine_segments(xyc, lab, rank=rank)
+                lab = _refine(X, lab, rank=rank)
             if n_segments is None:
                 lab = _rigidity_model_selection(xyc, A, lab, rank, float(np.sqrt(sig2)), max_segments, seed,
                                                 refine, sub, inliers=inliers, noise_regime=noise_regime,
@@ -631,14 +736,15 @@ def partition_bic(xy: Any, labels: Any, *, rank: int = 3, sigma: float) -> float
     return _bic(X, labels, rank, sigma ** 2)
 
 
-def _bic(X: np.ndarray, labels: np.ndarray, rank: int, sig2: float) -> float:
-    FD, P = X.shape
+def _bic(X: Any, labels: np.ndarray, rank: int, sig2: float) -> float:
+    M = _as_meas(X)
+    FD, P = M.FD, M.P
     k = int(labels.max(initial=-1)) + 1
     rss = 0.0
     for c in range(k):
         idx = np.flatnonzero(labels == c)
         if idx.size:
-            rss += float(np.sum(_affine_fit_residuals(X[:, idx], np.arange(idx.size), rank)))
+            rss += _own_rss(M, idx, rank)
     n_params = k * FD * (rank + 1) + int((labels >= 0).sum()) * rank
     return rss / max(sig2, 1e-300) + n_params * np.log(max(FD * P, 2))
 
@@ -655,7 +761,7 @@ def _noise_regime(X: np.ndarray, labels: np.ndarray, inliers: np.ndarray | None,
     must be <= 1.5.
     """
     if inliers is not None:
-        P = X.shape[1]
+        P = _as_meas(X).P
         sets = [np.flatnonzero(r) for r in inliers[:: max(1, inliers.shape[0] // 60)]]
         hm = [_misfit(X, np.where(np.isin(np.arange(P), st), 0, -1), rank, sig2)[0]
               for st in sets if st.size > rank + 1]
@@ -697,7 +803,7 @@ def _rigidity_model_selection(xy: np.ndarray, A: np.ndarray, labels: np.ndarray,
         sigma = geometry.noise_level(xy, rank=rank)
     sig2 = float(sigma) ** 2
     xyc = geometry._complete_for_affinity(xy)
-    X = geometry.measurement_matrix(xyc)
+    X = _Meas(geometry.measurement_matrix(xyc))
     small_size = rank + 2
 
     def worst(m: np.ndarray) -> float:
@@ -706,7 +812,7 @@ def _rigidity_model_selection(xy: np.ndarray, A: np.ndarray, labels: np.ndarray,
     def polish(lab: np.ndarray) -> np.ndarray:
         lab = _renumber(lab)
         if refine:
-            lab = refine_segments(xyc, lab, rank=rank)
+            lab = _refine(X, lab, rank=rank)
         for _ in range(3):
             k = int(lab.max()) + 1
             sizes = np.bincount(lab, minlength=k)
@@ -720,7 +826,7 @@ def _rigidity_model_selection(xy: np.ndarray, A: np.ndarray, labels: np.ndarray,
             lab[pts] = keep[np.argmin(R[:, pts], axis=0)]
             lab = _renumber(lab)
             if refine:
-                lab = refine_segments(xyc, lab, rank=rank)
+                lab = _refine(X, lab, rank=rank)
         return lab
 
     mis = _misfit(X, labels, rank, sig2)
