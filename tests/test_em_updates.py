@@ -228,3 +228,32 @@ def test_centroid_initialisation_is_the_papers(scene):
     for s in range(st.n_sticks):
         np.testing.assert_allclose(st.ends[E * s], st.ends[E * s + 1])  # both endpoints at the centroid
         np.testing.assert_allclose(st.mu_v[E * s], st.mu_e[E * s])
+
+
+def test_articulated_split_detects_a_joint_inside_a_stick_and_leaves_rigid_sticks_alone():
+    """A stick holding a part and its 2-point child is split (the pieces joined); true sticks are not."""
+    from stickfigure.models.em.refine import apply_articulated_splits, articulated_split_candidates
+
+    traj = sf.synthetic.random_figure(n_sticks=5, frames=80, noise=0.01, seed=11, points_per_stick=6)
+    a, b = traj.edges_true[0]
+    keep = np.ones(traj.n_points, bool)
+    keep[np.flatnonzero(traj.labels_true == b)[2:]] = False  # the child keeps two points
+    traj = traj.slice(points=keep)
+    truth = traj.labels_true
+    pri, rng = Priors(), np.random.default_rng(0)
+    obs, _, _ = normalise(traj.xy)
+    settings = S.EMSettings(resample_every=0)
+    # True groups: nothing to split.
+    st = initial_state(obs, truth, traj.n_parts_true, pri, rng, n_ends=3)
+    st, _, _ = S.run_em(st, obs, pri, settings, 100, rng)
+    assert articulated_split_candidates(st, obs, pri) == []
+    # The part and its child in one stick: that stick, and only it, is split.
+    merged = np.where(truth == b, a, truth)
+    _, merged = np.unique(merged, return_inverse=True)
+    st = initial_state(obs, merged, 4, pri, rng, n_ends=3)
+    st, _, _ = S.run_em(st, obs, pri, settings, 100, rng)
+    splits = articulated_split_candidates(st, obs, pri)
+    assert [s for s, _ in splits] == [int(merged[np.flatnonzero(truth == b)[0]])]
+    new = apply_articulated_splits(st, obs, pri, splits)
+    assert new.n_sticks == 5 and len(S.stick_edges(new)[0]) == 1  # the pieces share their joint
+    assert objective(new, obs, pri) > objective(st, obs, pri)

@@ -47,9 +47,11 @@ class EMSkeleton(StickEstimator):
         Resample the point-to-stick assignments every this many iterations (paper: 10; 0 = never).
     resample : {"sample", "map"}
         Draw assignments from their posterior (paper) or take the most probable stick.
-    selection : {"objective", "bic"}
-        Pick the stage with the highest objective (the paper) or the highest
-        ``objective - k/2 log N`` (k free parameters of the rigid-joint model).
+    selection : {"bic", "objective"}
+        Pick the stage with the highest ``objective - k/2 log N`` (k free
+        parameters of the rigid-joint model; the default, right for one
+        articulated figure) or with the highest objective (the paper; right when
+        the scene holds several independent objects). docs/em.md section 7.
     n_ends : int
         Endpoints per stick. The paper's sticks have 2, so a stick can take part in
         at most two distinct joints; a part with a third joint away from its ends
@@ -94,6 +96,10 @@ class EMSkeleton(StickEstimator):
     refine_sticks : bool
         After the first EM run, split sticks that are not rigid and join sticks that
         move as one, by BIC (an extension: the paper keeps the clustering's count).
+    articulated_rounds : int
+        Rounds of articulated splits after that (a stick that is two parts joined
+        at a joint becomes two sticks sharing a vertex, by BIC; docs/em.md
+        section 6); 0 turns them off.
     tau_p, alpha0, beta0, max_precision : float
         Priors (normalised units: the data are centred and scaled to unit RMS
         spread): precision of the Gaussian prior on local coordinates; Gamma prior
@@ -109,13 +115,13 @@ class EMSkeleton(StickEstimator):
     min_frames = 3
 
     def __init__(self, n_iter: int = 200, n_iter_merge: int = 20, resample_every: int = 10,
-                 resample: str = "sample", selection: str = "objective", n_ends: int = 3,
+                 resample: str = "sample", selection: str = "bic", n_ends: int = 3,
                  endpoint_init: str = "axis",
                  merge_init: str = "joint", merge_scope: str = "local", max_candidates: int | None = 40,
                  max_merges: int | None = None, merge_baseline: bool = True, n_polish: int = 3,
                  reuse_scores: bool = True, tol: float = 1e-4, min_stick_points: int = 3,
                  max_sticks: int | None = None, labels: Any = None, refine_sticks: bool = True,
-                 tau_p: float = 1.0,
+                 articulated_rounds: int = 4, tau_p: float = 1.0,
                  alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e10, impute_iter: int = 100,
                  random_state: Any = None, progress: bool = False) -> None:
         self.n_iter = n_iter
@@ -137,6 +143,7 @@ class EMSkeleton(StickEstimator):
         self.max_sticks = max_sticks
         self.labels = labels
         self.refine_sticks = refine_sticks
+        self.articulated_rounds = articulated_rounds
         self.tau_p = tau_p
         self.alpha0 = alpha0
         self.beta0 = beta0
@@ -153,6 +160,7 @@ class EMSkeleton(StickEstimator):
             raise ValueError(f"n_ends must be >= 2 (a stick has two ends), got {self.n_ends!r}")
         check_positive(self.resample_every, "resample_every", integer=True, allow_zero=True)
         check_positive(self.n_polish, "n_polish", integer=True, allow_zero=True)
+        check_positive(self.articulated_rounds, "articulated_rounds", integer=True, allow_zero=True)
         check_positive(self.tol, "tol", allow_zero=True)
         for name in ("tau_p", "alpha0", "beta0", "max_precision"):
             check_positive(getattr(self, name), name)
@@ -175,6 +183,7 @@ class EMSkeleton(StickEstimator):
                               tol=float(self.tol), refine_sticks=bool(self.refine_sticks),
                               merge_baseline=bool(self.merge_baseline), n_polish=int(self.n_polish),
                               reuse_scores=bool(self.reuse_scores),
+                              articulated_rounds=int(self.articulated_rounds),
                               endpoint_init=self.endpoint_init, n_ends=int(self.n_ends))
         priors = Priors(tau_p=float(self.tau_p), alpha0=float(self.alpha0), beta0=float(self.beta0),
                         max_precision=float(self.max_precision))
@@ -228,7 +237,7 @@ class EMSkeleton(StickEstimator):
 
 # --------------------------------------------------------------------------- helpers
 def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np.random.Generator, *,
-               labels: Any = None, max_sticks: int | None = None, selection: str = "objective",
+               labels: Any = None, max_sticks: int | None = None, selection: str = "bic",
                endpoint_init: str = "axis", n_ends: int = 2, progress: bool = False
                ) -> tuple[list[Stage], int, tuple[np.ndarray, float], dict[str, Any]]:
     """Initialisation and the whole structure search; returns every stage and the selected one."""

@@ -133,8 +133,9 @@ def refine_labels(st: StickState, obs: Observations, rng: np.random.Generator, *
     """New assignments after the split and join checks (unchanged when none applies)."""
     labels = st.labels.copy()
     S = st.n_sticks
+    priors = priors or Priors()
     splits = split_candidates(st, obs, rng, min_points=min_points)
-    joins = join_candidates(st, obs, priors or Priors())
+    joins = join_candidates(st, obs, priors)
     split_sticks = {s for s, _ in splits}
     for s, halves in splits:
         idx = np.flatnonzero(st.labels == s)
@@ -146,3 +147,277 @@ def refine_labels(st: StickState, obs: Observations, rng: np.random.Generator, *
         labels[labels == b] = a
     _, labels = np.unique(labels, return_inverse=True)
     return labels, {"splits": [int(s) for s, _ in splits], "joins": [[int(a), int(b)] for a, b in joins]}
+
+
+# ----------------------------------------------------------------- articulated splits
+def _axis_bipartitions(local: np.ndarray, max_candidates: int = 24) -> list[np.ndarray]:
+    """Candidate two-way splits of a stick's points: thresholds along each principal axis of its shape.
+
+    Two parts of a limb held in one stick lie on either side of their joint, so a
+    plane normal to one of the shape's principal axes separates them. Returns
+    boolean masks (True = second piece), each split once, both pieces non-empty.
+    """
+    n = local.shape[0]
+    c = local - local.mean(axis=0)
+    _, _, Vt = np.linalg.svd(c, full_matrices=False)
+    out: list[np.ndarray] = []
+    seen: set[tuple[int, ...]] = set()
+    for axis in Vt:
+        order = np.argsort(c @ axis, kind="stable")
+        for cut in range(1, n):
+            mask = np.zeros(n, bool)
+            mask[order[cut:]] = True
+            key = tuple(np.flatnonzero(mask if mask[0] else ~mask))
+            if key not in seen:
+                seen.add(key)
+                out.append(mask)
+    # Balanced cuts first: they are the likelier ones when the list has to be cut short.
+    out.sort(key=lambda m: abs(int(m.sum()) - n / 2))
+    return out[:max_candidates]
+
+
+def _split_block(st: StickState, obs: Observations, s: int, second: np.ndarray,
+                 priors: Priors) -> tuple[StickState, Observations]:
+    """Stick ``s`` as two sticks joined at one vertex, both starting at the stick's motion.
+
+    Each piece has a single endpoint, the joint (free endpoints would only hold
+    the pieces at their common starting motion); it starts midway between the
+    closest pair of points across the split, in the stick's local frame.
+    """
+    from .model import Ghosts, chain_degree
+
+    idx = np.flatnonzero(st.labels == s)
+    a_idx, b_idx = idx[~second], idx[second]
+    pts = np.concatenate([a_idx, b_idx])
+    labels = np.concatenate([np.zeros(a_idx.size, np.int64), np.ones(b_idx.size, np.int64)])
+    F, D = st.n_frames, st.n_dims
+    la, lb = st.local[a_idx], st.local[b_idx]
+    d = np.linalg.norm(la[:, None] - lb[None], axis=-1)
+    i, j = np.unravel_index(np.argmin(d), d.shape)
+    ends = np.repeat((0.5 * (la[i] + lb[j]))[None], 2, axis=0)
+    vertex_of = np.zeros(2, np.int64)
+    rot = np.repeat(st.rot[s][None], 2, axis=0)
+    trans = np.repeat(st.trans[s][None], 2, axis=0)
+    blk = StickState(labels=labels, vertex_of=vertex_of, rot=rot, trans=trans, local=st.local[pts].copy(),
+                     ends=ends, mu_e=np.zeros((2, F, D)), tau_e=np.ones(2), mu_v=np.zeros((1, F, D)),
+                     tau_v=np.ones((1, F)), alpha=np.ones(1), beta=np.ones(1), tau_w=st.tau_w, tau_m=st.tau_m,
+                     tau_t=st.tau_t, ghosts=Ghosts.empty(1, F, D))
+    blk.mu_e = blk.end_predictions()
+    blk.mu_v = blk.mu_e.mean(axis=0, keepdims=True)
+    blk.alpha = priors.alpha0 + 0.5 * D * F * np.array([2.0])
+    blk.beta = blk.alpha / st.tau_w
+    a = blk.alpha / blk.beta
+    blk.tau_e = blk.tau_m + a[vertex_of]
+    blk.tau_v = (2.0 * a)[:, None] + blk.tau_t * chain_degree(F)[None, :]
+    return blk, obs.take(pts)
+
+
+def articulated_split_candidates(st: StickState, obs: Observations, priors: Priors, *, n_sweeps: int = 40,
+                                 n_finalists: int = 5, max_frames: int = 240, skip: set[int] | None = None
+                                 ) -> list[tuple[int, np.ndarray]]:
+    """Sticks that are two parts joined by a joint: [(stick, 0/1 labels of its points)].
+
+    The split check above needs two rigid halves of at least four points each
+    (an affine body fits any four trajectories) and charges a free motion for
+    the second one. Body segments carry one to three markers, so a limb often
+    starts as one stick holding two or three segments. Here the second piece
+    hangs from the first at a joint: a piece of one or two points plus the
+    joint is a rigid body the orthographic metric model can test (its
+    rotation is pinned by the joint and its points), and the extra parameters
+    are the piece's rotations and the joint, ``k = 3 F + 6``. For every stick
+    that fits clearly worse than the noise (as in :func:`split_candidates`), the
+    splits by a plane normal to a principal axis of its shape
+    (:func:`_axis_bipartitions`) are fitted as two sticks sharing a vertex, all
+    candidates of all sticks at once (one batched EM run of ``n_sweeps`` sweeps
+    on the disjoint union, precisions fixed, at most ``max_frames`` evenly spaced
+    frames); the ``n_finalists`` best of each stick are fitted again for
+    ``3 n_sweeps`` sweeps, and the best of those is kept when ``(RSS_one - RSS_two) / (2 sigma^2) > k/2 log N``.
+    """
+    from .structure import _union
+
+    rss, var = noise_variance(st, obs)
+    N = float(obs.mask.sum() * obs.n_dims)
+    F, D = obs.n_frames, obs.n_dims
+    frames = np.arange(F) if F <= max_frames else np.unique(np.linspace(0, F - 1, max_frames).round().astype(int))
+    Fs = frames.size
+    # BIC with each parameter charged log of the observations that determine it: a per-frame
+    # rotation only sees the stick's points in that frame (D n_s coordinates), the joint sees all.
+    def penalty_of(n_s: int) -> float:
+        return 0.5 * 3 * F * np.log(D * n_s) + 0.5 * 6 * np.log(N)
+    sub = _frames(st, frames)
+    sobs = Observations(obs.w[:, frames], obs.mask[:, frames])
+    res = (obs.w - st.point_predictions()) * obs.mask[..., None]
+    point_rss = np.sum(res * res, axis=(1, 2))
+    blocks, owners = [], []
+    for s in range(st.n_sticks):
+        if skip and s in skip:
+            continue
+        idx = np.flatnonzero(st.labels == s)
+        if idx.size < 3:
+            continue
+        # Non-rigid without its worst point too: a single misassigned point (which resampling
+        # moves) is not a joint.
+        worst = int(np.argmax(point_rss[idx]))
+        rest = rss[s] - point_rss[idx[worst]]
+        if rest / (2.0 * var) - (obs.mask[idx].sum() - obs.mask[idx[worst]].sum()) * D / 2.0 < penalty_of(idx.size):
+            continue
+        for second in _axis_bipartitions(st.local[idx]):
+            blocks.append(_split_block(sub, sobs, s, second, priors))
+            owners.append((s, second))
+    if not blocks:
+        return []
+    one_rss = sub.design(sobs).residual_sq(sub.rot, sub.trans, sub.local)
+
+    def gains(chosen: list[int], sweeps: int) -> np.ndarray:
+        u, uobs, sb, _ = _union([blocks[c] for c in chosen])
+        for it in range(sweeps):
+            em_sweep(u, uobs, priors, precisions=False, global_rotations=it % 10 == 0, use_polar=False)
+        per = u.design(uobs).residual_sq(u.rot, u.trans, u.local)
+        split_rss = np.bincount(sb, weights=per, minlength=len(chosen))
+        return np.array([(one_rss[owners[c][0]] - r) * (F / Fs) / (2.0 * var) for c, r in zip(chosen, split_rss)])
+
+    # Screen every candidate with n_sweeps sweeps; the best few of each stick are fitted for
+    # three times as long before one is chosen (a right split can converge more slowly).
+    g = gains(list(range(len(blocks))), n_sweeps)
+    finalists = []
+    for s in sorted({o[0] for o in owners}):
+        mine = [c for c in range(len(blocks)) if owners[c][0] == s]
+        finalists += sorted(mine, key=lambda c: -g[c])[:n_finalists]
+    g2 = gains(finalists, 3 * n_sweeps)
+    # A piece whose points another stick explains is a clustering error, not a joint: the
+    # resampling's alternative (moving them there) is credited first.
+    from .assign import candidate_fits
+
+    _, sq = candidate_fits(st, obs, priors)
+    own = sq[np.arange(obs.n_points), st.labels]
+    other = np.where(np.arange(st.n_sticks)[None, :] == st.labels[:, None], np.inf, sq).min(axis=1)
+    move = np.maximum(own - other, 0.0) / (2.0 * var)
+    best: dict[int, tuple[float, np.ndarray]] = {}
+    for c, gain in zip(finalists, g2):
+        s, second = owners[c]
+        idx = np.flatnonzero(st.labels == s)
+        gain = gain - max(move[idx[second]].sum(), move[idx[~second]].sum())
+        if gain > penalty_of(second.size) and (s not in best or gain > best[s][0]):
+            best[s] = (gain, second.astype(np.int64))
+    return [(s, halves) for s, (_, halves) in sorted(best.items())]
+
+
+def _frames(st: StickState, frames: np.ndarray) -> StickState:
+    """The state restricted to some frames (motions and endpoint/vertex posteriors)."""
+    out = st.copy()
+    out.rot, out.trans = st.rot[:, frames], st.trans[:, frames]
+    out.mu_e, out.mu_v, out.tau_v = st.mu_e[:, frames], st.mu_v[:, frames], st.tau_v[:, frames]
+    out.ghosts = None
+    return out
+
+
+def apply_articulated_splits(st: StickState, obs: Observations, priors: Priors,
+                             splits: list[tuple[int, np.ndarray]], *, n_sweeps: int = 40) -> StickState:
+    """The model with every split stick replaced by two sticks joined at a new vertex.
+
+    Each split is fitted on all frames as in :func:`articulated_split_candidates`
+    (the two pieces and their joint, batched), then put into the model: piece A
+    keeps the stick's index and endpoints, piece B becomes a new stick whose
+    first endpoint shares the joint's vertex with a free endpoint of A (a stick
+    without a free endpoint is not split). An endpoint of the old stick already
+    in a joint moves to B when B's points are nearer to it than A's (and B
+    has a free slot). The new stick's other endpoints start free, along its
+    principal axis. Everything else is unchanged; the EM run that follows
+    re-optimises the whole model.
+    """
+    from .initialise import end_positions
+    from .model import chain_degree
+    from .structure import _union
+    from .updates import update_endpoints
+
+    S, E = st.n_sticks, st.ends_per_stick
+    F, D = st.n_frames, st.n_dims
+    cnt = st.vertex_counts()
+    ok = [(s, h) for s, h in splits if (cnt[st.vertex_of[E * s:E * (s + 1)]] == 1).any()]
+    if not ok:
+        return st
+    blocks = [_split_block(st, obs, s, h.astype(bool), priors) for s, h in ok]
+    u, uobs, _, _ = _union(blocks)
+    for it in range(n_sweeps):
+        em_sweep(u, uobs, priors, precisions=False, global_rotations=it % 10 == 0, use_polar=False)
+    out = st.copy()
+    labels = st.labels.copy()
+    rot, trans, local = list(st.rot), list(st.trans), st.local.copy()
+    ends = [list(st.ends[E * s:E * (s + 1)]) for s in range(S)]
+    verts = [list(st.vertex_of[E * s:E * (s + 1)]) for s in range(S)]
+    mu_v, tau_v = list(st.mu_v), list(st.tau_v)
+    alpha, beta = list(st.alpha), list(st.beta)
+    po = 0
+    for b, (s, h) in enumerate(ok):
+        idx = np.flatnonzero(st.labels == s)
+        second = h.astype(bool)
+        pts = np.concatenate([idx[~second], idx[second]])
+        n_pts = pts.size
+        blk_local = u.local[po:po + n_pts]
+        po += n_pts
+        local[pts] = blk_local
+        new = len(rot)
+        labels[idx[second]] = new
+        rot[s], trans[s] = u.rot[2 * b], u.trans[2 * b]
+        rot.append(u.rot[2 * b + 1])
+        trans.append(u.trans[2 * b + 1])
+        lb = blk_local[(~second).sum():]
+        la = blk_local[:(~second).sum()]
+        b_ends = list(end_positions(lb, np.zeros(lb.shape[0], np.int64), 1, E))
+        b_verts: list[int] = [-1] * E
+        b_free = list(range(1, E))
+        # Joints the old stick already had: keep each on the piece whose points are nearer.
+        for e in range(E):
+            j = verts[s][e]
+            if cnt[j] > 1 and b_free:
+                k = ends[s][e]
+                if np.min(np.linalg.norm(lb - k, axis=1)) < np.min(np.linalg.norm(la - k, axis=1)):
+                    slot = b_free.pop(0)
+                    b_ends[slot], b_verts[slot] = k, j
+                    # A gets a fresh free vertex in that endpoint's place.
+                    verts[s][e] = len(mu_v)
+                    mu_v.append(np.zeros((F, D)))
+                    tau_v.append(np.ones(F))
+                    alpha.append(1.0)
+                    beta.append(1.0)
+        free_a = [e for e in range(E) if (cnt[verts[s][e]] if verts[s][e] < cnt.size else 1) == 1]
+        ea = min(free_a, key=lambda e: verts[s][e] >= st.n_vertices)  # an original free vertex first
+        j = verts[s][ea]
+        ends[s][ea] = u.ends[2 * b]
+        b_ends[0], b_verts[0] = u.ends[2 * b + 1], j
+        mu_v[j], tau_v[j] = u.mu_v[b], u.tau_v[b]
+        alpha[j], beta[j] = u.alpha[b], u.beta[b]
+        for slot in range(1, E):
+            if b_verts[slot] < 0:
+                b_verts[slot] = len(mu_v)
+                mu_v.append(np.zeros((F, D)))
+                tau_v.append(np.ones(F))
+                alpha.append(1.0)
+                beta.append(1.0)
+        ends.append(b_ends)
+        verts.append(b_verts)
+    out.labels = labels
+    out.rot, out.trans, out.local = np.stack(rot), np.stack(trans), local
+    out.ends = np.concatenate([np.asarray(e) for e in ends]).reshape(-1, 3)
+    out.vertex_of = np.concatenate([np.asarray(v, np.int64) for v in verts])
+    out.mu_v, out.tau_v = np.stack(mu_v), np.stack(tau_v)
+    out.alpha, out.beta = np.asarray(alpha, float), np.asarray(beta, float)
+    # Free vertices (and their endpoints) start at their endpoint's prediction under the new
+    # motions, as in initial_state (old ones would sit where the old motion put them).
+    pred = out.end_predictions()
+    n = out.vertex_counts()
+    fresh = n == 1
+    fresh[st.n_vertices:] = True
+    for j in np.flatnonzero(fresh):
+        i = np.flatnonzero(out.vertex_of == j)
+        out.mu_v[j] = pred[i].mean(axis=0)
+        out.alpha[j] = priors.alpha0 + 0.5 * D * F * n[j]
+        out.beta[j] = out.alpha[j] / out.tau_w
+        out.tau_v[j] = out.alpha[j] / out.beta[j] * n[j] + out.tau_t * chain_degree(F)
+    out.mu_e = pred.copy()
+    out.tau_e = np.ones(out.ends.shape[0])
+    out.ghosts = None
+    out._design = None
+    out._quat = None
+    update_endpoints(out)
+    return out

@@ -86,6 +86,7 @@ class EMSettings:
     refine_sticks: bool = True
     endpoint_init: str = "axis"
     n_ends: int = 3
+    articulated_rounds: int = 4
 
 
 # ----------------------------------------------------------------------------- EM runs
@@ -688,7 +689,7 @@ def _stage(st: StickState, obs: Observations, value: float, merged: tuple[int, i
 
 
 def learn_structure(st: StickState, obs: Observations, priors: Priors, settings: EMSettings,
-                    rng: np.random.Generator, *, selection: str = "objective",
+                    rng: np.random.Generator, *, selection: str = "bic",
                     progress: Callable[[int, int, float], None] | None = None) -> tuple[list[Stage], int]:
     """Fig. 3 of the paper from an initial state; returns every stage and the selected one.
 
@@ -708,6 +709,18 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
         st = initial_state(obs, labels, int(labels.max()) + 1, priors, rng, endpoint_init=settings.endpoint_init,
                            n_ends=settings.n_ends)
         st, val, more = run_em(st, obs, priors, settings, settings.n_iter, rng)
+        sweeps += more
+    for _ in range(settings.articulated_rounds if settings.refine_sticks else 0):
+        from .refine import apply_articulated_splits, articulated_split_candidates
+
+        splits = articulated_split_candidates(st, obs, priors)
+        if not splits:
+            break
+        new = apply_articulated_splits(st, obs, priors, splits)
+        if new is st:
+            break
+        refinements.append({"articulated_splits": [int(s) for s, _ in splits]})
+        st, val, more = run_em(new, obs, priors, settings, settings.n_iter, rng)
         sweeps += more
     stages = [_stage(st, obs, val, None, sweeps, ref)]
     stages[0].refinements = refinements
