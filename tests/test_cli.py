@@ -275,6 +275,23 @@ def test_learn(work, tmp_path, capsys):
     assert (tmp_path / "out" / "report.html").exists()
 
 
+def test_learn_video_with_tracker_options(work, tmp_path, capsys):
+    """--roi and --track-option reach the tracker: only the square moving in the region is tracked."""
+    video = tmp_path / "squares.mp4"
+    _texture_video(video)
+    out = tmp_path / "o"
+    assert main(["-q", "learn", str(video), "-o", str(out), "--method", "multibody-sfm", "--roi", "0,0,110,144",
+                 "--track-option", "max_points=40", "--track-option", "min_length=5"]) == 0
+    tracks = sf.load(out / "tracks.npz")
+    assert tracks.meta["roi"] == [0, 0, 110, 144] and tracks.meta["tracker"]["max_points"] == 40
+    assert np.nanmax(tracks.xy[..., 0]) <= 110
+    d, _ = work
+    assert main(["-q", "learn", str(d / "fig.npz"), "-o", str(tmp_path / "p"), "--roi", "0,0,10,10"]) == 2
+    assert "video input only" in _error_line(capsys)
+    assert main(["-q", "learn", str(video), "-o", str(tmp_path / "q"), "--track-option", "no_such=1"]) == 2
+    assert "no_such" in _error_line(capsys)
+
+
 @pytest.mark.parametrize("content", [b"", b"this is not a video\n" * 50])
 def test_learn_unreadable_video_one_line(content, tmp_path):
     """A broken video: exit 2, one line on the process's stderr (FFmpeg's own complaints
