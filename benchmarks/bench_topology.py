@@ -225,7 +225,7 @@ def case_in_phase(ctx: Context) -> Iterator[dict[str, Any]]:
                 joined.append(bool(_legs_joined(skel, traj)))
             yield {"suite": "topology-in-phase", "dataset": f"in_phase_legs ({tag})", "method": method,
                    **_mean_rows(rows), "legs_joined": f"{sum(joined)}/{len(joined)}",
-                   "notes": f"{len(figures)} figures, 6 sticks, both legs driven by one hip/knee signal"}
+                   "notes": f"{len(figures)} figures, 6 sticks, both legs driven by one hip/knee signal, the pelvis tilting"}
 
 
 def _load_hopkins(folder: Path) -> Trajectories:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -274,15 +275,37 @@ def test_learn(work, tmp_path, capsys):
     assert (tmp_path / "out" / "report.html").exists()
 
 
+def test_learn_video_with_tracker_options(work, tmp_path, capsys):
+    """--roi and --track-option reach the tracker: only the square moving in the region is tracked."""
+    video = tmp_path / "squares.mp4"
+    _texture_video(video)
+    out = tmp_path / "o"
+    assert main(["-q", "learn", str(video), "-o", str(out), "--method", "multibody-sfm", "--roi", "0,0,110,144",
+                 "--track-option", "max_points=40", "--track-option", "min_length=5"]) == 0
+    tracks = sf.load(out / "tracks.npz")
+    assert tracks.meta["roi"] == [0, 0, 110, 144] and tracks.meta["tracker"]["max_points"] == 40
+    assert np.nanmax(tracks.xy[..., 0]) <= 110
+    d, _ = work
+    assert main(["-q", "learn", str(d / "fig.npz"), "-o", str(tmp_path / "p"), "--roi", "0,0,10,10"]) == 2
+    assert "video input only" in _error_line(capsys)
+    assert main(["-q", "learn", str(video), "-o", str(tmp_path / "q"), "--track-option", "no_such=1"]) == 2
+    assert "no_such" in _error_line(capsys)
+
+
 @pytest.mark.parametrize("content", [b"", b"this is not a video\n" * 50])
-def test_learn_unreadable_video_one_line(content, tmp_path, capfd):
+def test_learn_unreadable_video_one_line(content, tmp_path):
     """A broken video: exit 2, one line on the process's stderr (FFmpeg's own complaints
     silenced too), and no output folder left behind."""
     video = tmp_path / "broken.mp4"
     video.write_bytes(content)
     out = tmp_path / "out"
-    assert main(["-q", "learn", str(video), "-o", str(out)]) == 2
-    err = capfd.readouterr().err.strip().splitlines()
+    # A fresh process: FFmpeg's log level is fixed the first time a process uses it.
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    env.pop("OPENCV_FFMPEG_LOGLEVEL", None)
+    run = subprocess.run([sys.executable, "-m", "stickfigure.cli", "-q", "learn", str(video), "-o", str(out)],
+                         capture_output=True, text=True, timeout=120, env=env)
+    assert run.returncode == 2
+    err = run.stderr.strip().splitlines()
     assert len(err) == 1, err
     assert err[0].startswith("stickfigure: error: ") and "broken.mp4" in err[0]
     assert not out.exists()

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import ast
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -273,7 +274,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = cmd("learn", "video, tracks or motion capture -> model, animation and report",
             "One command from a video (tracked first), a tracks file or motion capture to a learned skeleton: "
             "writes the model, a video of the skeleton over the input and an HTML report into DIR.",
-            "  stickfigure learn clip.mp4 -o clip-out/\n  stickfigure learn walk.c3d --method em -o walk-out/\n")
+            "  stickfigure learn clip.mp4 -o clip-out/\n  stickfigure learn walk.c3d --method em -o walk-out/\n"
+            "  stickfigure learn bikes.mp4 --frames 76:137 --roi 330,0,310,272 --track-option min_motion=0.002 "
+            "-o cyclist/\n")
     p.add_argument("source", metavar="VIDEO|TRACKS|MOCAP")
     p.add_argument("-m", "--method", default="em", help="method name (default em)")
     p.add_argument("-o", "--output", required=True, metavar="DIR", help="output folder")
@@ -282,6 +285,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", metavar="A:B", help="frame range of the input")
     p.add_argument("--project", metavar="VIEW", default="isometric",
                    help="view for 3D input (default isometric; 'none' keeps 3D)")
+    p.add_argument("--roi", metavar="X,Y,W,H", help="video input: track only in this region (pixels)")
+    p.add_argument("--track-option", action="append", metavar="NAME=VALUE",
+                   help="video input: other tracker option (see 'stickfigure track'), repeatable, "
+                        "e.g. min_motion=0.002 for a subject that barely moves")
     p.set_defaults(run=_cmd_learn)
 
     p = cmd("report", "write a self-contained HTML report",
@@ -527,6 +534,16 @@ def _cmd_export_bvh(args: argparse.Namespace) -> int:
     return 0
 
 
+def _roi(text: str) -> tuple[int, ...]:
+    try:
+        roi = tuple(int(v) for v in text.split(","))
+    except ValueError:
+        raise ValueError(f"--roi must be X,Y,W,H in pixels, got {text!r}") from None
+    if len(roi) != 4:
+        raise ValueError(f"--roi must be X,Y,W,H in pixels, got {text!r}")
+    return roi
+
+
 def _cmd_track(args: argparse.Namespace) -> int:
     import stickfigure as sf
 
@@ -535,13 +552,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
     out = _check_suffix(args.output, (".npz", ".csv"), "the output")
     opts = _key_values(args.option, "--option")
     if args.roi:
-        try:
-            roi = tuple(int(v) for v in args.roi.split(","))
-        except ValueError:
-            raise ValueError(f"--roi must be X,Y,W,H in pixels, got {args.roi!r}") from None
-        if len(roi) != 4:
-            raise ValueError(f"--roi must be X,Y,W,H in pixels, got {args.roi!r}")
-        opts["roi"] = roi
+        opts["roi"] = _roi(args.roi)
     if args.max_points:
         opts["max_points"] = args.max_points
     if not Path(args.video).is_file():
@@ -569,6 +580,15 @@ def _cmd_learn(args: argparse.Namespace) -> int:
     kw: dict[str, Any] = {"progress": not args.quiet, "random_state": args.seed, "project": project}
     if frames is not None:
         kw["frames"] = frames
+    track_options = _key_values(args.track_option, "--track-option")
+    if args.roi:
+        track_options["roi"] = _roi(args.roi)
+    if track_options:
+        from .track import VIDEO_SUFFIXES
+
+        if Path(args.source).suffix.lower() not in VIDEO_SUFFIXES:
+            raise ValueError("--roi and --track-option apply to video input only")
+        kw["track_options"] = track_options
     paths = learn(args.source, args.output, method=args.method, **kw, **params)
     for what, path in paths.items():
         print(f"{what}: {path}")
@@ -626,6 +646,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "command", None):
         parser.print_help()
         return 0
+    # FFmpeg reads its log level once, when OpenCV first uses it: set it before any video is
+    # touched, so a broken video gives our one error line and not FFmpeg's complaints too.
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
     try:
         import matplotlib
 

@@ -68,6 +68,7 @@ VIDEO_SUFFIXES = frozenset({".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".m
 def _cv2() -> Any:
     # FFmpeg prints its own complaints ("moov atom not found") on stderr before OpenCV
     # reports failure; the tracker's one-line error says it instead. A user's setting wins.
+    # FFmpeg reads it once, at OpenCV's first use of it (the CLI sets it at start-up).
     os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
     import cv2
 
