@@ -37,7 +37,7 @@ from ._atomic import atomic_path, atomic_write_text
 from ._validation import check_edges, check_labels
 from .trajectories import Trajectories, as_trajectories
 
-__all__ = ["Skeleton", "FORMAT_VERSION"]
+__all__ = ["Skeleton", "FORMAT_VERSION", "orient_tree"]
 
 FORMAT_VERSION = 1
 
@@ -323,6 +323,30 @@ def as_trajectories_unobserved(data: Any) -> Trajectories:
         return Trajectories(np.asarray(data, dtype=float), allow_unobserved=True)
     except (TypeError, ValueError):
         return as_trajectories(data)
+
+
+def orient_tree(edges: list[tuple[int, int]], root: int, n: int) -> list[tuple[int, int]]:
+    """Direct an undirected forest as (parent, child) pairs, in breadth-first order.
+
+    Parameters
+    ----------
+    edges : list of (int, int)
+        Undirected edges between ``n`` nodes, forming a forest.
+    root : int
+        Root of its tree; every other tree is rooted at its smallest node.
+    n : int
+        Number of nodes.
+    """
+    import networkx as nx
+
+    g = nx.Graph()
+    g.add_nodes_from(range(n))
+    g.add_edges_from(edges)
+    out = []
+    for comp in nx.connected_components(g):
+        r = root if root in comp else min(comp)
+        out += [(int(p), int(c)) for c, p in nx.bfs_predecessors(g, r)]
+    return out
 
 
 def _is_forest(n: int, edges: list[tuple[int, int]]) -> bool:

@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from .._validation import check_labels, check_positive
-from ..skeleton import Skeleton
+from ..skeleton import Skeleton, orient_tree
 from ..trajectories import Trajectories
 from .base import StickEstimator, register
 
@@ -759,20 +759,6 @@ def maximum_spanning_tree(weights: np.ndarray) -> list[tuple[int, int]]:
     return sorted((min(u, v), max(u, v)) for u, v in tree.edges())
 
 
-def _orient(edges: list[tuple[int, int]], root: int, n: int) -> list[tuple[int, int]]:
-    """(parent, child) pairs of a tree rooted at ``root``, in breadth-first order."""
-    import networkx as nx
-
-    g = nx.Graph()
-    g.add_nodes_from(range(n))
-    g.add_edges_from(edges)
-    out = []
-    for comp in nx.connected_components(g):
-        r = root if root in comp else min(comp)
-        out += [(int(p), int(c)) for c, p in nx.bfs_predecessors(g, r)]
-    return out
-
-
 def fixed_points(a_p: np.ndarray, b_p: np.ndarray, a_c: np.ndarray, b_c: np.ndarray, *,
                  prior_p: np.ndarray, prior_c: np.ndarray, ridge: float = 1e-6,
                  mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -977,7 +963,7 @@ class MITree(StickEstimator):
             mi_info = {"entropy": np.zeros(1), "reference_frame": 0, "type_fractions": np.zeros((1, 3))}
             tree = []
         sizes = np.bincount(labels[labels >= 0], minlength=S)
-        edges = _orient(tree, int(np.argmax(sizes)), S)
+        edges = orient_tree(tree, int(np.argmax(sizes)), S)
         t1 = int(mi_info["reference_frame"])
 
         joints = np.zeros((len(edges), F, 2))

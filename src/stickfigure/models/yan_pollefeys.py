@@ -34,7 +34,7 @@ import numpy as np
 import scipy.linalg
 
 from .._validation import check_labels, check_positive
-from ..skeleton import Skeleton
+from ..skeleton import Skeleton, orient_tree
 from ..trajectories import Trajectories
 from .base import StickEstimator, register
 
@@ -238,19 +238,6 @@ def select_n_segments(xy: np.ndarray, affinity: np.ndarray, *, max_segments: int
                     "misfit_level": round(level, 3)}
 
 
-def _orient(edges: list[tuple[int, int]], root: int, n: int) -> list[tuple[int, int]]:
-    import networkx as nx
-
-    g = nx.Graph()
-    g.add_nodes_from(range(n))
-    g.add_edges_from(edges)
-    out = []
-    for comp in nx.connected_components(g):
-        r = root if root in comp else min(comp)
-        out += [(int(p), int(c)) for c, p in nx.bfs_predecessors(g, r)]
-    return out
-
-
 @register("yan-pollefeys")
 class YanPollefeys(StickEstimator):
     """Yan & Pollefeys: LSA + spectral clustering, then a minimum spanning tree of subspace angles.
@@ -346,7 +333,7 @@ class YanPollefeys(StickEstimator):
             dist = np.zeros((1, 1))
             tree = []
         sizes = np.bincount(labels[labels >= 0], minlength=S)
-        edges = _orient(tree, int(np.argmax(sizes)), S)
+        edges = orient_tree(tree, int(np.argmax(sizes)), S)
 
         # Step 4: joints at the subspace intersections.
         if edges:
