@@ -181,8 +181,17 @@ def marginal_loglik(x: np.ndarray, theta: np.ndarray, T: np.ndarray, s_x: np.nda
 
 
 def y_posterior(x: np.ndarray, theta: np.ndarray, T: np.ndarray, s_x: np.ndarray, s_yh: np.ndarray,
-                s_yv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                s_yv: np.ndarray, w: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Gaussian posterior of the local positions y_i given a node's parameters.
+
+    Parameters
+    ----------
+    x : complex ndarray, shape (..., F)
+    theta : ndarray, shape (..., F)
+    T : complex ndarray, shape (..., F)
+    s_x, s_yh, s_yv : ndarray, shape (...)
+    w : ndarray of {0, 1}, shape (..., F), optional
+        Which frames count (observed); all of them when omitted.
 
     Returns
     -------
@@ -190,8 +199,12 @@ def y_posterior(x: np.ndarray, theta: np.ndarray, T: np.ndarray, s_x: np.ndarray
     var_h, var_v : ndarray, shape (...)
         Variances along and across the stick (the posterior is axis-aligned since R^T R = F I).
     """
-    F = x.shape[-1]
-    z = (np.exp(-1j * theta) * (x - T)).sum(-1)  # sum_f R_f^T (x_f - T_f)
+    if w is None:
+        F = x.shape[-1]
+        z = (np.exp(-1j * theta) * (x - T)).sum(-1)  # sum_f R_f^T (x_f - T_f)
+    else:
+        F = w.sum(-1)
+        z = (w * np.exp(-1j * theta) * (x - T)).sum(-1)
     prec_h = s_yh + F * s_x
     prec_v = s_yv + F * s_x
     half = 3.0 / np.sqrt(s_yh)
