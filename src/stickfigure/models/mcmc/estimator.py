@@ -11,7 +11,7 @@ from ...trajectories import Trajectories
 from ..base import StickEstimator, register
 from .data import initial_imputation, normalise, root_precision
 from .diagnostics import convergence, n_sticks_posterior
-from .kernels import SweepConfig, impute_missing, update_rotations, update_translations_given_y
+from .kernels import SweepConfig, update_rotations, update_translations_given_y
 from .model import Hyper
 from .sampler import ChainSettings, run_chains
 from .state import Data, State
@@ -68,6 +68,9 @@ class StickMCMC(StickEstimator):
         Rounds of sub-tree, path-reversal, swap and re-hang moves per sweep.
     init : "single" or int
         Start every chain from one stick, or from this many k-means clusters.
+    n_starts : int
+        Annealed starts in each chain's burn-in; the chain goes on from the best
+        of its own starts (see :func:`.sampler.run_chain` and docs/mcmc.md).
     n_impute_samples : int
         Posterior samples averaged by :meth:`impute_skeleton`.
     impute_sweeps : int
@@ -89,7 +92,7 @@ class StickMCMC(StickEstimator):
                  kappa_nd: float = 1.0, lam: float = 1.0, update_lambda: bool = True, lambda_a: float = 1.0,
                  lambda_b: float = 1.0, root_precision: float | str = "auto", n_aux: int = 5,
                  n_split_merge: int = 5, n_launch: int = 2, n_tree_moves: int = 2, init: str | int = "single",
-                 n_impute_samples: int = 20, impute_sweeps: int = 25, max_stored: int = 100,
+                 n_starts: int = 3, n_impute_samples: int = 20, impute_sweeps: int = 25, max_stored: int = 100,
                  progress: bool = False, random_state: Any = None) -> None:
         self.n_chains = n_chains
         self.n_sweeps = n_sweeps
@@ -117,6 +120,7 @@ class StickMCMC(StickEstimator):
         self.n_launch = n_launch
         self.n_tree_moves = n_tree_moves
         self.init = init
+        self.n_starts = n_starts
         self.n_impute_samples = n_impute_samples
         self.impute_sweeps = impute_sweeps
         self.max_stored = max_stored
@@ -132,7 +136,7 @@ class StickMCMC(StickEstimator):
                 raise ValueError(f"{name} must be an integer {bound}, got {v!r}")
             return int(v)
 
-        for name in ("n_chains", "n_sweeps", "thin", "n_aux", "n_impute_samples", "max_stored"):
+        for name in ("n_chains", "n_sweeps", "thin", "n_aux", "n_impute_samples", "max_stored", "n_starts"):
             pos_int(name)
         for name in ("burn_in", "n_split_merge", "n_launch", "n_tree_moves", "impute_sweeps"):
             pos_int(name, allow_zero=True)
@@ -177,7 +181,8 @@ class StickMCMC(StickEstimator):
         cfg = SweepConfig(n_aux=int(self.n_aux), n_split_merge=int(self.n_split_merge), n_launch=int(self.n_launch),
                           n_subtree=int(self.n_tree_moves))
         settings = ChainSettings(n_sweeps=int(self.n_sweeps), burn_in=int(self.burn_in), thin=int(self.thin),
-                                 init_clusters=1 if self.init == "single" else int(self.init))
+                                 init_clusters=1 if self.init == "single" else int(self.init),
+                                 n_starts=int(self.n_starts))
         chains = run_chains(z, hyper, cfg, settings, int(self.n_chains), rng, n_jobs=self.n_jobs,
                             progress=bool(self.progress))
         return _build_skeleton(traj, chains, hyper, centre, scale, noise, int(self.max_stored), rng)
@@ -201,8 +206,8 @@ class StickMCMC(StickEstimator):
         positions (their posterior mean from the training frames) -- is kept,
         and the per-frame rotations and translations are re-inferred from the
         visible entries by a short conditional Gibbs run (von Mises rotations
-        and Gaussian translations given the local positions, missing entries
-        imputed each sweep), started from a rigid fit; the predicted positions
+        and Gaussian translations given the local positions and the visible
+        entries only), started from a rigid fit; the predicted positions
         are averaged over sweeps and samples. Sticks with no visible point in a
         frame follow the tree prior: their joint sits at the parent's distal
         end and their angle follows their parent's and neighbouring frames.
@@ -233,9 +238,10 @@ class StickMCMC(StickEstimator):
             st, y = _conditional_start(st_, int(d), z, observed, hyper)
             data = Data(x=_fill(z, observed, st, y, x0), observed=observed)
             for s in range(n_sweeps):
-                update_translations_given_y(st, data, y, hyper, rng)
-                update_rotations(st, data, y, hyper, rng)
-                impute_missing(st, data, y, rng)
+                # Given y the missing entries drop out: only the visible ones count, so a
+                # hidden stick follows its joint and its neighbouring frames.
+                update_translations_given_y(st, data, y, hyper, rng, observed_only=True)
+                update_rotations(st, data, y, hyper, rng, observed_only=True)
                 if s >= warm or n_sweeps == 1:
                     total += np.exp(1j * st.theta[st.c]) * y[:, None] + st.T[st.c]
                     count += 1
