@@ -216,6 +216,31 @@ def test_lambda_update_keeps_its_prior():
     assert ks_2samp(draws, after).pvalue > 1e-3
 
 
+def test_kappa_nd_update_keeps_its_prior():
+    """kappa_nd drawn from its prior, angles from the chain prior given it, then the slice
+    update: kappa_nd must still follow its prior (and it must move)."""
+    from dataclasses import replace
+
+    from stickfigure.models.mcmc.state import sample_prior_state
+
+    rng = np.random.default_rng(6)
+    base = Hyper(update_kappa_nd=True, kappa_nd_a=3.0, kappa_nd_b=0.5, root_precision=1.0)
+    draws, after = [], []
+    for _ in range(1500):
+        kappa = rng.gamma(base.kappa_nd_a, 1.0 / base.kappa_nd_b)
+        hy = replace(base, kappa_nd=kappa)
+        st = sample_prior_state(6, 5, hy, rng, lam=1.0)
+        after.append(K.update_kappa_nd(st, hy, rng).kappa_nd)
+        draws.append(rng.gamma(base.kappa_nd_a, 1.0 / base.kappa_nd_b))
+    assert ks_2samp(draws, after).pvalue > 1e-3
+    wrong = []
+    for _ in range(1500):  # power: the same update under a prior the angles did not come from
+        hy = replace(base, kappa_nd=rng.gamma(base.kappa_nd_a, 1.0 / base.kappa_nd_b))
+        st = sample_prior_state(6, 5, replace(hy, kappa_nd=3.0 * hy.kappa_nd), rng, lam=1.0)
+        wrong.append(K.update_kappa_nd(st, hy, rng).kappa_nd)
+    assert ks_2samp(draws, wrong).pvalue < 1e-6
+
+
 # --------------------------------------------------------------- algebra
 def _dense(x, theta, T, s_x, s_yh, s_yv):
     Fr = theta.size

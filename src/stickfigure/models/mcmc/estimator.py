@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any, ClassVar
 
 import numpy as np
@@ -56,6 +57,10 @@ class StickMCMC(StickEstimator):
     update_lambda : bool
         Sample lambda under a Gamma(``lambda_a``, ``lambda_b``) prior.
     lambda_a, lambda_b : float
+    update_kappa_nd : bool
+        Sample kappa_nd (its starting value ``kappa_nd``) under a Gamma(``kappa_nd_a``,
+        ``kappa_nd_b``) prior; False keeps the paper's fixed value (docs/mcmc.md).
+    kappa_nd_a, kappa_nd_b : float
     root_precision : "auto" or float
         Precision of the root's children's translations about the centre.
     n_aux : int
@@ -90,7 +95,8 @@ class StickMCMC(StickEstimator):
                  b_sx: float | str = "auto", a_syh: float = 100.0, b_syh: float = 1.0, a_syv: float = 400.0,
                  b_syv: float = 1.0, a_sT: float = 100.0, b_sT: float = 1.0, kappa_rho: float = 1.0,
                  kappa_nd: float = 1.0, lam: float = 1.0, update_lambda: bool = True, lambda_a: float = 1.0,
-                 lambda_b: float = 1.0, root_precision: float | str = "auto", n_aux: int = 5,
+                 lambda_b: float = 1.0, update_kappa_nd: bool = True, kappa_nd_a: float = 1.0,
+                 kappa_nd_b: float = 0.01, root_precision: float | str = "auto", n_aux: int = 5,
                  n_split_merge: int = 5, n_launch: int = 2, n_tree_moves: int = 2, init: str | int = "single",
                  n_starts: int = 3, n_impute_samples: int = 20, impute_sweeps: int = 25, max_stored: int = 100,
                  progress: bool = False, random_state: Any = None) -> None:
@@ -114,6 +120,9 @@ class StickMCMC(StickEstimator):
         self.update_lambda = update_lambda
         self.lambda_a = lambda_a
         self.lambda_b = lambda_b
+        self.update_kappa_nd = update_kappa_nd
+        self.kappa_nd_a = kappa_nd_a
+        self.kappa_nd_b = kappa_nd_b
         self.root_precision = root_precision
         self.n_aux = n_aux
         self.n_split_merge = n_split_merge
@@ -145,7 +154,7 @@ class StickMCMC(StickEstimator):
         if self.n_jobs is not None:
             pos_int("n_jobs")
         for name in ("a_sx", "a_syh", "b_syh", "a_syv", "b_syv", "a_sT", "b_sT", "kappa_rho", "kappa_nd", "lam",
-                     "lambda_a", "lambda_b"):
+                     "lambda_a", "lambda_b", "kappa_nd_a", "kappa_nd_b"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float, np.number)) or not np.isfinite(v) or v <= 0:
                 raise ValueError(f"{name} must be a positive number, got {v!r}")
@@ -176,7 +185,8 @@ class StickMCMC(StickEstimator):
             kappa_nd=float(self.kappa_nd),
             root_precision=root_precision(z) if self.root_precision == "auto" else float(self.root_precision),
             lam=float(self.lam), update_lambda=bool(self.update_lambda), lambda_a=float(self.lambda_a),
-            lambda_b=float(self.lambda_b),
+            lambda_b=float(self.lambda_b), update_kappa_nd=bool(self.update_kappa_nd),
+            kappa_nd_a=float(self.kappa_nd_a), kappa_nd_b=float(self.kappa_nd_b),
         )
         cfg = SweepConfig(n_aux=int(self.n_aux), n_split_merge=int(self.n_split_merge), n_launch=int(self.n_launch),
                           n_subtree=int(self.n_tree_moves))
@@ -221,6 +231,8 @@ class StickMCMC(StickEstimator):
         observed = ~np.isnan(z)
         P, F = z.shape
         hyper = Hyper(**{k: v for k, v in skeleton.info["hyper"].items()})
+        if skeleton.info.get("kappa_nd_mean") is not None:  # learned: its posterior mean
+            hyper = replace(hyper, kappa_nd=float(skeleton.info["kappa_nd_mean"]))
         params = skeleton.params
         n_samples = int(params.get("n_impute_samples", 20))
         n_sweeps = int(params.get("impute_sweeps", 25))
@@ -431,6 +443,7 @@ def _build_skeleton(traj: Trajectories, chains: list[dict[str, Any]], hyper: Hyp
         "trace_log_joint": np.stack([ch["trace_log_joint"] for ch in chains]),
         "trace_n_sticks": np.stack([ch["trace_n_sticks"] for ch in chains]),
         "trace_lambda": np.stack([ch["trace_lambda"] for ch in chains]),
+        "trace_kappa_nd": np.stack([ch["trace_kappa_nd"] for ch in chains]),
         "predictive_mean": np.stack([pred.real, pred.imag], axis=-1),
     }
     info = {
@@ -444,6 +457,7 @@ def _build_skeleton(traj: Trajectories, chains: list[dict[str, Any]], hyper: Hyp
         "centre": [float(centre[0]), float(centre[1])],
         "noise": float(noise) if np.isfinite(noise) else None,
         "hyper": hyper.as_dict(),
+        "kappa_nd_mean": (float(np.mean([ch["kappa_nd"] for ch in chains])) if hyper.update_kappa_nd else None),
         "n_draws_per_chain": int(D),
         "log_joint_units": "model coordinates (data centred and divided by scale)",
     }

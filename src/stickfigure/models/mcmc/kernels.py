@@ -52,7 +52,7 @@ Derivations and deviations from the printed equations
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -83,6 +83,7 @@ __all__ = [
     "reverse_path",
     "swap_move",
     "rehang_move",
+    "polish_tree",
     "update_translations",
     "update_translations_given_y",
     "rotation_shift",
@@ -91,6 +92,7 @@ __all__ = [
     "update_child_precisions",
     "slice_horizontal_precisions",
     "update_lambda",
+    "update_kappa_nd",
     "impute_missing",
     "fit_node",
     "sweep",
@@ -937,6 +939,16 @@ def rehang_move(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, c
     if cand.size == 0:
         return st, current
     p_new = int(cand[rng.integers(cand.size)])
+    new, proposed, log_q = _rehang_proposal(st, data, hyper, rng, cfg, r, p_new)
+    ok = math.log(rng.random()) < proposed - current + log_q
+    if stats is not None:
+        stats.add("rehang", ok)
+    return (new, proposed) if ok else (st, current)
+
+
+def _rehang_proposal(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg: SweepConfig, r: int,
+                     p_new: int) -> tuple[State, float, float]:
+    """Re-hang node ``r`` under ``p_new`` (:func:`rehang_move`): new state, its log target, log q_rev - log q_fwd."""
     p_old = int(st.parent[r])
     x = data.x_proposal
     xr = x[st.c == r]
@@ -953,11 +965,7 @@ def rehang_move(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, c
     _set_phi(new, r, phi)
     lq += _redraw_translations(new, kids, x, hyper, rng)
     lr += _redraw_translations(st, kids, x, hyper, None)
-    proposed = _target(new, data, hyper, cfg)
-    ok = math.log(rng.random()) < proposed - current + lr - lq
-    if stats is not None:
-        stats.add("rehang", ok)
-    return (new, proposed) if ok else (st, current)
+    return new, _target(new, data, hyper, cfg), lr - lq
 
 
 def _reassign(kids_theta: np.ndarray, kids_T: np.ndarray, phi_a: tuple, phi_b: tuple, hyper: Hyper,
@@ -992,6 +1000,16 @@ def swap_move(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg
     if has.size == 0:
         return st, current
     c = int(has[rng.integers(has.size)])
+    new, proposed, log_q = _swap_proposal(st, data, hyper, rng, cfg, c)
+    ok = math.log(rng.random()) < proposed - current + log_q
+    if stats is not None:
+        stats.add("swap", ok)
+    return (new, proposed) if ok else (st, current)
+
+
+def _swap_proposal(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg: SweepConfig,
+                   c: int) -> tuple[State, float, float]:
+    """Swap node ``c`` with its parent (:func:`swap_move`): new state, its log target, log q_rev - log q_fwd."""
     p = int(st.parent[c])
     g = int(st.parent[p])
     x = data.x_proposal
@@ -1019,11 +1037,57 @@ def swap_move(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg
     was_c = np.concatenate([np.zeros(kids_p.size, bool), np.ones(kids_c.size, bool)])
     _, lr_h = _reassign(new.theta[others], new.T[others], old_p, old_c, hyper, rng, target=was_c)
     proposed = _target(new, data, hyper, cfg)
-    log_ratio = proposed - current + lr_p + lr_c + lr_h + lr_t - lq_c - lq_p - lq_h - lq_t
-    ok = math.log(rng.random()) < log_ratio
-    if stats is not None:
-        stats.add("swap", ok)
-    return (new, proposed) if ok else (st, current)
+    return new, proposed, lr_p + lr_c + lr_h + lr_t - lq_c - lq_p - lq_h - lq_t
+
+
+def polish_tree(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg: SweepConfig,
+                rounds: int = 3, n_best: int = 3, relax: int = 4) -> State:
+    """Greedy search over trees for the current partition (burn-in only: not a Markov kernel).
+
+    Every swap of a node with its parent and every re-hang of a node under
+    another node or the root is proposed once (:func:`_swap_proposal`,
+    :func:`_rehang_proposal`); the ``n_best`` with the highest log target are
+    relaxed by ``relax`` sweeps of the parameter kernels (structure fixed), as is
+    the current state, and the best of them replaces the current state if its
+    log target ends higher. Repeated for up to ``rounds`` rounds or until the
+    current state wins. It mends what no single exact move can: a stick hung
+    at the wrong end of a neighbour and contorted to meet it sits 100+ nats
+    below the right tree, but a proposal's data-driven parameters are no match
+    for the contorted ones until they have relaxed into the new tree.
+    """
+    fixed = SweepConfig(n_aux=cfg.n_aux, structure=False, likelihood=cfg.likelihood)
+    for _ in range(rounds):
+        if st.K < 2:
+            return st
+        A = ancestor_matrix(st.parent)
+        cands = []
+        for c in np.flatnonzero(st.parent >= 0).tolist():
+            new, val, _ = _swap_proposal(st, data, hyper, rng, cfg, c)
+            cands.append((val, new))
+        for r in range(st.K):
+            for p_new in [-1] + np.flatnonzero(~A[:, r]).tolist():
+                if p_new != st.parent[r]:
+                    new, val, _ = _rehang_proposal(st, data, hyper, rng, cfg, r, int(p_new))
+                    cands.append((val, new))
+        cands.sort(key=lambda t: -t[0])
+        x0 = data.x.copy()  # relaxing re-imputes missing entries: each candidate from the same completion
+        best_val, best, best_x = -np.inf, None, x0
+        for _, new in cands[:n_best]:
+            data.x = x0.copy()
+            for _ in range(relax):
+                new = sweep(new, data, hyper, rng, fixed)
+            val = _target(new, data, hyper, cfg)
+            if val > best_val:
+                best_val, best, best_x = val, new, data.x
+        data.x = x0.copy()
+        cur = st.copy()
+        for _ in range(relax):
+            cur = sweep(cur, data, hyper, rng, fixed)
+        if best is None or best_val <= _target(cur, data, hyper, cfg):
+            return cur
+        st = best
+        data.x = best_x
+    return st
 
 
 # ------------------------------------------------------------- parameters
@@ -1301,6 +1365,32 @@ def slice_horizontal_precisions(st: State, data: Data, hyper: Hyper, rng: np.ran
         return lp
 
     st.s_yh = np.exp(_slice_sample(logp, np.log(st.s_yh), 0.3, rng))
+
+
+def update_kappa_nd(st: State, hyper: Hyper, rng: np.random.Generator) -> Hyper:
+    """Slice sampling of kappa_nd (an angle's tie to its previous frame) in log space; returns the new Hyper.
+
+    Its conditional involves only the angles' chain prior (eqs. 4-5, every
+    node's normalisers ``I0(A)`` included) and its Gamma(``kappa_nd_a``,
+    ``kappa_nd_b``) prior: ``log p(u) = sum_k log G(theta_k | theta_parent; kappa_rho, e^u)
+    + a u - b e^u`` for ``u = log kappa_nd`` (the Jacobian gives ``a`` instead of ``a - 1``).
+    With the paper's fixed ``kappa_nd = 1`` an angle in a frame where its stick
+    is unseen is known to within about 0.7 rad from its neighbouring frames, so
+    the posterior-mean position of an occluded point shrinks towards the
+    joint; figures that move smoothly from frame to frame get a far larger
+    kappa_nd here, and occluded sticks follow their neighbouring frames.
+    """
+    has = st.parent >= 0
+    th_par = np.where(has[:, None], st.theta[np.maximum(st.parent, 0)], 0.0)
+    a, b = hyper.kappa_nd_a, hyper.kappa_nd_b
+
+    def logp(u: np.ndarray) -> np.ndarray:
+        k = float(np.exp(u[0]))
+        return np.array([float(rotation_prior_logpdf(st.theta, th_par, hyper.kappa_rho, k).sum())
+                         + a * u[0] - b * k])
+
+    u = _slice_sample(logp, np.array([math.log(hyper.kappa_nd)]), 1.0, rng)
+    return replace(hyper, kappa_nd=float(np.exp(u[0])))
 
 
 def update_lambda(st: State, n_points: int, hyper: Hyper, rng: np.random.Generator) -> None:

@@ -95,6 +95,10 @@ class Hyper:
     update_lambda : bool
         Sample lambda (Escobar & West) under a Gamma(lambda_a, lambda_b) prior.
     lambda_a, lambda_b : float
+    update_kappa_nd : bool
+        Sample kappa_nd (the tie of an angle to its previous frame) under a
+        Gamma(kappa_nd_a, kappa_nd_b) prior; ``kappa_nd`` is then its current value.
+    kappa_nd_a, kappa_nd_b : float
     """
 
     a_sx: float = 10.0
@@ -112,6 +116,9 @@ class Hyper:
     update_lambda: bool = True
     lambda_a: float = 1.0
     lambda_b: float = 1.0
+    update_kappa_nd: bool = False
+    kappa_nd_a: float = 1.0
+    kappa_nd_b: float = 0.01
 
     def as_dict(self) -> dict[str, float]:
         return asdict(self)

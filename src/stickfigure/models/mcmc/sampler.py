@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from .data import initial_imputation, initial_state
-from .kernels import MoveStats, SweepConfig, sweep
+from .kernels import MoveStats, SweepConfig, polish_tree, sweep, update_kappa_nd
 from .model import Hyper, y_posterior
 from .state import Data, State, log_joint
 
@@ -50,6 +50,9 @@ class ChainSettings:
         Annealed starts in the burn-in, each from a fresh starting state; the
         chain goes on from the one whose log-joint over its last sweeps is
         highest (see :func:`run_chain`).
+    polish : bool
+        At the end of each start's annealing, a greedy search over trees for
+        the partition reached (:func:`.kernels.polish_tree`).
     """
 
     n_sweeps: int = 600
@@ -60,6 +63,7 @@ class ChainSettings:
     anneal: float = 0.8
     beta0: float = 0.01
     n_starts: int = 3
+    polish: bool = True
 
 
 def _record(st: State, data: Data) -> dict[str, Any]:
@@ -132,11 +136,11 @@ def run_chain(z: np.ndarray, hyper: Hyper, cfg: SweepConfig, settings: ChainSett
     Returns
     -------
     dict
-        ``trace_log_joint``, ``trace_n_sticks``, ``trace_lambda`` (every sweep, observed-data
+        ``trace_log_joint``, ``trace_n_sticks``, ``trace_lambda``, ``trace_kappa_nd`` (every sweep, observed-data
         log-joint; the burn-in's starts one after the other), and the kept draws: ``c`` (D, I),
         ``parent`` (D, Kmax; -2 pads), ``theta`` (D, Kmax, F), ``T`` (D, Kmax, F) complex,
         ``prec`` (D, Kmax, 4), ``y`` (D, I) complex (posterior mean local positions given the
-        draw), ``log_joint``, ``n_sticks``, ``lam`` (D,); ``pred_mean`` (I, F) complex, the
+        draw), ``log_joint``, ``n_sticks``, ``lam``, ``kappa_nd`` (D,); ``pred_mean`` (I, F) complex, the
         posterior mean prediction of every entry; ``acceptance`` (dict); ``start_scores`` (the
         score of every annealed start) and ``start_chosen``; ``final_state``.
     """
@@ -164,10 +168,13 @@ def run_chain(z: np.ndarray, hyper: Hyper, cfg: SweepConfig, settings: ChainSett
 
         bar = tqdm(total=n, desc=f"chain {chain_id}", position=chain_id, leave=True, mininterval=0.5)
 
-    def record(s: int, st: State, data: Data) -> None:
-        tr_lj[s] = log_joint(st, data, hyper, observed=True)
+    tr_kappa = np.empty(n)
+
+    def record(s: int, st: State, data: Data, hy: Hyper) -> None:
+        tr_lj[s] = log_joint(st, data, hy, observed=True)
         tr_k[s] = st.K
         tr_lam[s] = st.lam
+        tr_kappa[s] = hy.kappa_nd
         if bar is not None:
             bar.update(1)
             if s % 20 == 0:
@@ -175,39 +182,53 @@ def run_chain(z: np.ndarray, hyper: Hyper, cfg: SweepConfig, settings: ChainSett
 
     s = 0
     scores: list[float] = []
-    best: tuple[float, State, Data] | None = None
+    best: tuple[float, State, Data, Hyper] | None = None
+
+    def model_sweep(st: State, data: Data, hy: Hyper, stats: MoveStats | None = None) -> tuple[State, Hyper]:
+        st = sweep(st, data, hy, rng, cfg, stats)
+        if hy.update_kappa_nd:
+            hy = update_kappa_nd(st, hy, rng)
+        return st, hy
+
     try:
         for length in _start_lengths(settings):
             st, data = fresh()
+            hy = hyper
             n_anneal = max(1, int(0.8 * length))
             for t in range(length):
                 beta = settings.beta0 + (1.0 - settings.beta0) * t / n_anneal if t < n_anneal else 1.0
-                st = _tempered_sweep(st, data, hyper, rng, cfg, beta) if beta < 1.0 else sweep(st, data, hyper,
-                                                                                             rng, cfg)
-                record(s, st, data)
+                if t == n_anneal and settings.polish and cfg.structure:
+                    st = polish_tree(st, data, hy, rng, cfg)
+                if beta < 1.0:
+                    st = _tempered_sweep(st, data, hy, rng, cfg, beta)
+                else:
+                    st, hy = model_sweep(st, data, hy)
+                record(s, st, data, hy)
                 s += 1
             m = max(3, length // 5)
             score = float(np.mean(tr_lj[s - min(m, length):s]))
             scores.append(score)
             if best is None or score > best[0]:
-                best = (score, st, data)
+                best = (score, st, data, hy)
         if best is None:
             st, data = fresh()
+            hy = hyper
         else:
-            _, st, data = best
+            _, st, data, hy = best
         for s in range(s, n):
-            st = sweep(st, data, hyper, rng, cfg, stats)
-            record(s, st, data)
+            st, hy = model_sweep(st, data, hy, stats)
+            record(s, st, data, hy)
             if s >= settings.burn_in and (s - settings.burn_in) % settings.thin == 0:
                 rec = _record(st, data)
                 rec["log_joint"], rec["n_sticks"], rec["lam"] = tr_lj[s], st.K, st.lam
+                rec["kappa_nd"] = hy.kappa_nd
                 pred_sum += rec.pop("pred")
                 draws.append(rec)
     finally:
         if bar is not None:
             bar.close()
     out = stack_draws(draws, z.shape[1])
-    out.update(trace_log_joint=tr_lj, trace_n_sticks=tr_k, trace_lambda=tr_lam,
+    out.update(trace_log_joint=tr_lj, trace_n_sticks=tr_k, trace_lambda=tr_lam, trace_kappa_nd=tr_kappa,
                pred_mean=pred_sum / max(len(draws), 1), acceptance=stats.rates(), final_state=st,
                start_scores=np.array(scores), start_chosen=int(np.argmax(scores)) if scores else -1)
     return out
@@ -228,6 +249,7 @@ def stack_draws(draws: list[dict[str, Any]], F: int) -> dict[str, np.ndarray]:
         "log_joint": np.array([d["log_joint"] for d in draws], float),
         "n_sticks": np.array([d["n_sticks"] for d in draws], np.int64),
         "lam": np.array([d["lam"] for d in draws], float),
+        "kappa_nd": np.array([d.get("kappa_nd", np.nan) for d in draws], float),
     }
     for t, d in enumerate(draws):
         K = d["parent"].shape[0]

@@ -198,6 +198,8 @@ def log_joint(st: State, data: Data, hyper: Hyper, observed: bool = False) -> fl
     lp = log_tree_prior(st.counts(), st.parent, st.lam) + node_prior_logpdf(st, hyper).sum()
     if hyper.update_lambda:
         lp += float(gamma_logpdf(st.lam, hyper.lambda_a, hyper.lambda_b))
+    if hyper.update_kappa_nd:
+        lp += float(gamma_logpdf(hyper.kappa_nd, hyper.kappa_nd_a, hyper.kappa_nd_b))
     return float(ll + lp)
 
 
