@@ -11,7 +11,7 @@ from collections import Counter
 
 import numpy as np
 import pytest
-from scipy.stats import chisquare
+from scipy.stats import chisquare, ks_2samp
 
 from stickfigure.models.mcmc import kernels as K
 from stickfigure.models.mcmc.model import Hyper
@@ -26,6 +26,12 @@ from stickfigure.models.mcmc.prior import (
 from stickfigure.models.mcmc.state import Data, State, sample_prior_state
 
 HYPER = Hyper(root_precision=1.0, update_lambda=False)
+# Loose node priors for the structure-move tests: with the paper's hyper-parameters a
+# prior draw's nodes are so tightly tied (joints within 0.1 of the parent's end) that
+# the data-driven proposals of split-merge, swap, re-hang and sub-tree moves are
+# essentially never accepted without a likelihood, and an invariance test of them would
+# pass whatever they did. Here they are accepted 5-25% of the time.
+LOOSE = Hyper(root_precision=1.0, update_lambda=False, b_sx=1000.0, kappa_rho=0.1, kappa_nd=0.1, a_sT=2.0, b_sT=2.0)
 CFG = K.SweepConfig(likelihood=False, n_aux=2, n_launch=1)
 
 
@@ -99,65 +105,113 @@ def _data(rng: np.random.Generator, n_points: int, n_frames: int) -> Data:
     return Data(x=x, observed=np.ones((n_points, n_frames), bool))
 
 
-def _gibbs(st, data, rng):
-    K.gibbs_indicators(st, data, HYPER, rng, CFG)
+def _gibbs(st, data, rng, hyper=HYPER, stats=None):
+    K.gibbs_indicators(st, data, hyper, rng, CFG, stats)
     return st
 
 
-def _split_merge(st, data, rng):
-    return K.split_merge(st, data, HYPER, rng, CFG)[0]
+def _split_merge(st, data, rng, hyper=HYPER, stats=None):
+    return K.split_merge(st, data, hyper, rng, CFG, stats)[0]
 
 
-def _subtree(st, data, rng):
-    K.subtree_move(st, data, HYPER, rng)
+def _subtree(st, data, rng, hyper=HYPER, stats=None):
+    K.subtree_move(st, data, hyper, rng, stats)
     return st
 
 
-def _reverse(st, data, rng):
-    return K.reverse_path(st, data, HYPER, rng)
+def _reverse(st, data, rng, hyper=HYPER, stats=None):
+    return K.reverse_path(st, data, hyper, rng, stats)
 
 
-def _swap(st, data, rng):
-    return K.swap_move(st, data, HYPER, rng, CFG)[0]
+def _swap(st, data, rng, hyper=HYPER, stats=None):
+    return K.swap_move(st, data, hyper, rng, CFG, stats)[0]
 
 
-def _rehang(st, data, rng):
-    return K.rehang_move(st, data, HYPER, rng, CFG)[0]
+def _rehang(st, data, rng, hyper=HYPER, stats=None):
+    return K.rehang_move(st, data, hyper, rng, CFG, stats)[0]
 
 
 STRUCTURE_KERNELS = {"gibbs": _gibbs, "split_merge": _split_merge, "subtree": _subtree,
                      "reverse_path": _reverse, "swap": _swap, "rehang": _rehang}
 
 
-def _apply_to_prior_draws(kernel, n_draws: int, n_points: int, seed: int, repeats: int = 2) -> Counter:
+def _param_stats(st: State) -> np.ndarray:
+    """Label-free statistics of the node parameters: those of point 0's node and its parent link."""
+    k = st.c[0]
+    p = st.parent[k]
+    J = np.zeros(st.T.shape[1], complex) if p < 0 else st.T[p] + np.exp(1j * st.theta[p]) * 6 / np.sqrt(st.s_yh[p])
+    return np.array([st.T[k, 0].real, st.T[k, -1].imag, abs(st.T[k, 0] - J[0]), np.cos(st.theta[k, 0]),
+                     np.sin(st.theta[k, -1]), np.log(st.s_x[k]), np.log(st.s_yh[k]), np.log(st.s_T[k])])
+
+
+def _apply_to_prior_draws(kernel, n_draws: int, n_points: int, seed: int, repeats: int = 2, hyper: Hyper = HYPER,
+                          n_frames: int = 2) -> tuple[Counter, np.ndarray, np.ndarray, K.MoveStats]:
+    """Configurations and parameter statistics after ``kernel``, and of fresh prior draws."""
     rng = np.random.default_rng(seed)
     counts: Counter = Counter()
+    stats = K.MoveStats()
+    after, prior = [], []
     for _ in range(n_draws):
-        st = sample_prior_state(n_points, 2, HYPER, rng, lam=1.0)
-        data = _data(rng, n_points, 2)
+        prior.append(_param_stats(sample_prior_state(n_points, n_frames, hyper, rng, lam=1.0)))
+        st = sample_prior_state(n_points, n_frames, hyper, rng, lam=1.0)
+        data = _data(rng, n_points, n_frames)
         for _ in range(repeats):
-            st = kernel(st, data, rng)
+            st = kernel(st, data, rng, hyper, stats)
         counts[canonical_key(st.c, st.parent)] += 1
-    return counts
+        after.append(_param_stats(st))
+    return counts, np.array(prior), np.array(after), stats
+
+
+def _min_ks(a: np.ndarray, b: np.ndarray) -> float:
+    return min(ks_2samp(a[:, j], b[:, j]).pvalue for j in range(a.shape[1]))
 
 
 @pytest.mark.parametrize("name", sorted(STRUCTURE_KERNELS))
 def test_structure_kernel_leaves_prior_invariant(name):
-    """Exact prior draws pushed through the kernel keep the prior over configurations."""
-    counts = _apply_to_prior_draws(STRUCTURE_KERNELS[name], 500, 3, seed=11)
+    """Exact prior draws pushed through the kernel keep the prior over configurations and parameters.
+
+    Loose node priors (``LOOSE``), so that every kernel is accepted often enough
+    for the test to see what it does (checked: at least 3% of its proposals).
+    """
+    counts, prior, after, stats = _apply_to_prior_draws(STRUCTURE_KERNELS[name], 500, 3, seed=11, hyper=LOOSE)
     assert _chi2_pvalue(counts, _exact(3, 1.0)) > 1e-3
+    assert _min_ks(prior, after) > 1e-3 / prior.shape[1]
+    if name != "gibbs":  # Gibbs has no rejections
+        rate = sum(stats.accepted.values()) / sum(stats.proposed.values())
+        assert rate > 0.03, f"{name} accepted only {rate:.3f} of its proposals: the test would be vacuous"
 
 
 def test_invariance_check_has_power():
     """A kernel that ignores the prior (re-attach a random node to the root) is caught."""
 
-    def to_root(st, data, rng):
+    def to_root(st, data, rng, hyper, stats):
         k = int(rng.integers(st.K))
         st.parent[k] = -1
         return st
 
-    counts = _apply_to_prior_draws(to_root, 500, 3, seed=11, repeats=1)
+    counts, *_ = _apply_to_prior_draws(to_root, 500, 3, seed=11, repeats=1, hyper=LOOSE)
     assert _chi2_pvalue(counts, _exact(3, 1.0)) < 1e-4
+
+
+def test_parameter_check_has_power():
+    """A re-hang whose uniform draws are all tiny, so that it accepts whatever its ratio (the
+    re-fitted node's parameters then follow the data-driven proposal, not the prior), is
+    caught by the parameter statistics."""
+
+    def always(st, data, rng, hyper, stats):
+        real = rng.random
+
+        class Lucky:  # the acceptance draw always passes
+            def __getattr__(self, name):
+                return getattr(rng, name)
+
+            def random(self, *a, **k):
+                return real(*a, **k) if a or k else 1e-300
+
+        return K.rehang_move(st, data, hyper, Lucky(), CFG, stats)[0]
+
+    _, prior, after, _ = _apply_to_prior_draws(always, 500, 3, seed=11, hyper=LOOSE)
+    assert _min_ks(prior, after) < 1e-3 / prior.shape[1]
 
 
 def test_internal_singleton_keeps_its_point():
@@ -185,8 +239,9 @@ def test_internal_singleton_keeps_its_point():
 @pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(STRUCTURE_KERNELS))
 def test_structure_kernel_invariance_four_points(name):
-    counts = _apply_to_prior_draws(STRUCTURE_KERNELS[name], 6000, 4, seed=5)
+    counts, prior, after, _ = _apply_to_prior_draws(STRUCTURE_KERNELS[name], 6000, 4, seed=5, hyper=LOOSE)
     assert _chi2_pvalue(counts, _exact(4, 1.0)) > 1e-3
+    assert _min_ks(prior, after) > 1e-3 / prior.shape[1]
 
 
 @pytest.mark.slow

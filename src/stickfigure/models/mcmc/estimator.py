@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any, ClassVar
 
 import numpy as np
@@ -11,7 +12,7 @@ from ...trajectories import Trajectories
 from ..base import StickEstimator, register
 from .data import initial_imputation, normalise, root_precision
 from .diagnostics import convergence, n_sticks_posterior
-from .kernels import SweepConfig, impute_missing, update_rotations, update_translations_given_y
+from .kernels import SweepConfig, update_rotations, update_translations_given_y
 from .model import Hyper
 from .sampler import ChainSettings, run_chains
 from .state import Data, State
@@ -56,6 +57,10 @@ class StickMCMC(StickEstimator):
     update_lambda : bool
         Sample lambda under a Gamma(``lambda_a``, ``lambda_b``) prior.
     lambda_a, lambda_b : float
+    update_kappa_nd : bool
+        Sample kappa_nd (its starting value ``kappa_nd``) under a Gamma(``kappa_nd_a``,
+        ``kappa_nd_b``) prior; False keeps the paper's fixed value (docs/mcmc.md).
+    kappa_nd_a, kappa_nd_b : float
     root_precision : "auto" or float
         Precision of the root's children's translations about the centre.
     n_aux : int
@@ -68,6 +73,9 @@ class StickMCMC(StickEstimator):
         Rounds of sub-tree, path-reversal, swap and re-hang moves per sweep.
     init : "single" or int
         Start every chain from one stick, or from this many k-means clusters.
+    n_starts : int
+        Annealed starts in each chain's burn-in; the chain goes on from the best
+        of its own starts (see :func:`.sampler.run_chain` and docs/mcmc.md).
     n_impute_samples : int
         Posterior samples averaged by :meth:`impute_skeleton`.
     impute_sweeps : int
@@ -87,9 +95,10 @@ class StickMCMC(StickEstimator):
                  b_sx: float | str = "auto", a_syh: float = 100.0, b_syh: float = 1.0, a_syv: float = 400.0,
                  b_syv: float = 1.0, a_sT: float = 100.0, b_sT: float = 1.0, kappa_rho: float = 1.0,
                  kappa_nd: float = 1.0, lam: float = 1.0, update_lambda: bool = True, lambda_a: float = 1.0,
-                 lambda_b: float = 1.0, root_precision: float | str = "auto", n_aux: int = 5,
+                 lambda_b: float = 1.0, update_kappa_nd: bool = True, kappa_nd_a: float = 1.0,
+                 kappa_nd_b: float = 0.01, root_precision: float | str = "auto", n_aux: int = 5,
                  n_split_merge: int = 5, n_launch: int = 2, n_tree_moves: int = 2, init: str | int = "single",
-                 n_impute_samples: int = 20, impute_sweeps: int = 25, max_stored: int = 100,
+                 n_starts: int = 3, n_impute_samples: int = 20, impute_sweeps: int = 25, max_stored: int = 100,
                  progress: bool = False, random_state: Any = None) -> None:
         self.n_chains = n_chains
         self.n_sweeps = n_sweeps
@@ -111,12 +120,16 @@ class StickMCMC(StickEstimator):
         self.update_lambda = update_lambda
         self.lambda_a = lambda_a
         self.lambda_b = lambda_b
+        self.update_kappa_nd = update_kappa_nd
+        self.kappa_nd_a = kappa_nd_a
+        self.kappa_nd_b = kappa_nd_b
         self.root_precision = root_precision
         self.n_aux = n_aux
         self.n_split_merge = n_split_merge
         self.n_launch = n_launch
         self.n_tree_moves = n_tree_moves
         self.init = init
+        self.n_starts = n_starts
         self.n_impute_samples = n_impute_samples
         self.impute_sweeps = impute_sweeps
         self.max_stored = max_stored
@@ -132,7 +145,7 @@ class StickMCMC(StickEstimator):
                 raise ValueError(f"{name} must be an integer {bound}, got {v!r}")
             return int(v)
 
-        for name in ("n_chains", "n_sweeps", "thin", "n_aux", "n_impute_samples", "max_stored"):
+        for name in ("n_chains", "n_sweeps", "thin", "n_aux", "n_impute_samples", "max_stored", "n_starts"):
             pos_int(name)
         for name in ("burn_in", "n_split_merge", "n_launch", "n_tree_moves", "impute_sweeps"):
             pos_int(name, allow_zero=True)
@@ -141,7 +154,7 @@ class StickMCMC(StickEstimator):
         if self.n_jobs is not None:
             pos_int("n_jobs")
         for name in ("a_sx", "a_syh", "b_syh", "a_syv", "b_syv", "a_sT", "b_sT", "kappa_rho", "kappa_nd", "lam",
-                     "lambda_a", "lambda_b"):
+                     "lambda_a", "lambda_b", "kappa_nd_a", "kappa_nd_b"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float, np.number)) or not np.isfinite(v) or v <= 0:
                 raise ValueError(f"{name} must be a positive number, got {v!r}")
@@ -172,12 +185,14 @@ class StickMCMC(StickEstimator):
             kappa_nd=float(self.kappa_nd),
             root_precision=root_precision(z) if self.root_precision == "auto" else float(self.root_precision),
             lam=float(self.lam), update_lambda=bool(self.update_lambda), lambda_a=float(self.lambda_a),
-            lambda_b=float(self.lambda_b),
+            lambda_b=float(self.lambda_b), update_kappa_nd=bool(self.update_kappa_nd),
+            kappa_nd_a=float(self.kappa_nd_a), kappa_nd_b=float(self.kappa_nd_b),
         )
         cfg = SweepConfig(n_aux=int(self.n_aux), n_split_merge=int(self.n_split_merge), n_launch=int(self.n_launch),
                           n_subtree=int(self.n_tree_moves))
         settings = ChainSettings(n_sweeps=int(self.n_sweeps), burn_in=int(self.burn_in), thin=int(self.thin),
-                                 init_clusters=1 if self.init == "single" else int(self.init))
+                                 init_clusters=1 if self.init == "single" else int(self.init),
+                                 n_starts=int(self.n_starts))
         chains = run_chains(z, hyper, cfg, settings, int(self.n_chains), rng, n_jobs=self.n_jobs,
                             progress=bool(self.progress))
         return _build_skeleton(traj, chains, hyper, centre, scale, noise, int(self.max_stored), rng)
@@ -201,8 +216,8 @@ class StickMCMC(StickEstimator):
         positions (their posterior mean from the training frames) -- is kept,
         and the per-frame rotations and translations are re-inferred from the
         visible entries by a short conditional Gibbs run (von Mises rotations
-        and Gaussian translations given the local positions, missing entries
-        imputed each sweep), started from a rigid fit; the predicted positions
+        and Gaussian translations given the local positions and the visible
+        entries only), started from a rigid fit; the predicted positions
         are averaged over sweeps and samples. Sticks with no visible point in a
         frame follow the tree prior: their joint sits at the parent's distal
         end and their angle follows their parent's and neighbouring frames.
@@ -216,6 +231,8 @@ class StickMCMC(StickEstimator):
         observed = ~np.isnan(z)
         P, F = z.shape
         hyper = Hyper(**{k: v for k, v in skeleton.info["hyper"].items()})
+        if skeleton.info.get("kappa_nd_mean") is not None:  # learned: its posterior mean
+            hyper = replace(hyper, kappa_nd=float(skeleton.info["kappa_nd_mean"]))
         params = skeleton.params
         n_samples = int(params.get("n_impute_samples", 20))
         n_sweeps = int(params.get("impute_sweeps", 25))
@@ -233,9 +250,10 @@ class StickMCMC(StickEstimator):
             st, y = _conditional_start(st_, int(d), z, observed, hyper)
             data = Data(x=_fill(z, observed, st, y, x0), observed=observed)
             for s in range(n_sweeps):
-                update_translations_given_y(st, data, y, hyper, rng)
-                update_rotations(st, data, y, hyper, rng)
-                impute_missing(st, data, y, rng)
+                # Given y the missing entries drop out: only the visible ones count, so a
+                # hidden stick follows its joint and its neighbouring frames.
+                update_translations_given_y(st, data, y, hyper, rng, observed_only=True)
+                update_rotations(st, data, y, hyper, rng, observed_only=True)
                 if s >= warm or n_sweeps == 1:
                     total += np.exp(1j * st.theta[st.c]) * y[:, None] + st.T[st.c]
                     count += 1
@@ -425,6 +443,7 @@ def _build_skeleton(traj: Trajectories, chains: list[dict[str, Any]], hyper: Hyp
         "trace_log_joint": np.stack([ch["trace_log_joint"] for ch in chains]),
         "trace_n_sticks": np.stack([ch["trace_n_sticks"] for ch in chains]),
         "trace_lambda": np.stack([ch["trace_lambda"] for ch in chains]),
+        "trace_kappa_nd": np.stack([ch["trace_kappa_nd"] for ch in chains]),
         "predictive_mean": np.stack([pred.real, pred.imag], axis=-1),
     }
     info = {
@@ -438,6 +457,7 @@ def _build_skeleton(traj: Trajectories, chains: list[dict[str, Any]], hyper: Hyp
         "centre": [float(centre[0]), float(centre[1])],
         "noise": float(noise) if np.isfinite(noise) else None,
         "hyper": hyper.as_dict(),
+        "kappa_nd_mean": (float(np.mean([ch["kappa_nd"] for ch in chains])) if hyper.update_kappa_nd else None),
         "n_draws_per_chain": int(D),
         "log_joint_units": "model coordinates (data centred and divided by scale)",
     }

@@ -52,7 +52,7 @@ Derivations and deviations from the printed equations
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -83,6 +83,7 @@ __all__ = [
     "reverse_path",
     "swap_move",
     "rehang_move",
+    "polish_tree",
     "update_translations",
     "update_translations_given_y",
     "rotation_shift",
@@ -91,6 +92,7 @@ __all__ = [
     "update_child_precisions",
     "slice_horizontal_precisions",
     "update_lambda",
+    "update_kappa_nd",
     "impute_missing",
     "fit_node",
     "sweep",
@@ -140,16 +142,17 @@ class MoveStats:
         return {k: self.accepted.get(k, 0) / v for k, v in self.proposed.items() if v}
 
 
-def _loglik(x: np.ndarray, theta, T, s_x, s_yh, s_yv, likelihood: bool) -> np.ndarray:
+def _loglik(x: np.ndarray, theta, T, s_x, s_yh, s_yv, likelihood: bool, w: np.ndarray | None = None) -> np.ndarray:
     if likelihood:
-        return marginal_loglik(x, theta, T, s_x, s_yh, s_yv)
+        return marginal_loglik(x, theta, T, s_x, s_yh, s_yv, w)
     shape = np.broadcast_shapes(x.shape[:-1], np.shape(theta)[:-1], np.shape(s_x))
     return np.zeros(shape)
 
 
-def node_loglik_matrix(st: State, x: np.ndarray, likelihood: bool = True) -> np.ndarray:
-    """log F(x_i | phi_k) for every point and node, shape (I, K)."""
-    return _loglik(x[:, None, :], st.theta[None], st.T[None], st.s_x, st.s_yh, st.s_yv, likelihood)
+def node_loglik_matrix(st: State, x: np.ndarray, likelihood: bool = True, w: np.ndarray | None = None) -> np.ndarray:
+    """log F(x_i | phi_k) for every point and node, shape (I, K) (only frames where ``w`` (I, F) is 1, if given)."""
+    return _loglik(x[:, None, :], st.theta[None], st.T[None], st.s_x, st.s_yh, st.s_yv, likelihood,
+                   None if w is None else w[:, None, :])
 
 
 def _log_sigmoid(d: float) -> float:
@@ -186,12 +189,15 @@ def gibbs_indicators(st: State, data: Data, hyper: Hyper, rng: np.random.Generat
     """Gibbs update of every point's node indicator (eqs. 11-12 with the exact tree-prior factors).
 
     Internal singletons keep their point (section 2.2.3). Nodes left empty are removed.
+    Like every structure move it targets the posterior with the missing entries
+    integrated out (only observed frames enter the likelihood).
     """
     x = data.x
     I, F = x.shape
+    wobs = data.w if data.has_missing else None
     M = int(cfg.n_aux)
     K = st.K
-    LL = node_loglik_matrix(st, x, cfg.likelihood)  # (I, K)
+    LL = node_loglik_matrix(st, x, cfg.likelihood, wobs)  # (I, K)
     n = st.counts().astype(float)
     A = ancestor_matrix(st.parent).astype(float)
     N = A.T @ n
@@ -201,7 +207,7 @@ def gibbs_indicators(st: State, data: Data, hyper: Hyper, rng: np.random.Generat
     th_s, J_s, s_s = _slot_context(st, hyper, slots)
     a_th, a_T, a_pr = _draw_aux(th_s, J_s, s_s, M, hyper, rng)
     AUX = _loglik(x[:, None, None, :], a_th[None], a_T[None], a_pr[None, ..., 0], a_pr[None, ..., 1],
-                  a_pr[None, ..., 2], cfg.likelihood)  # (I, K + 1, M)
+                  a_pr[None, ..., 2], cfg.likelihood, None if wobs is None else wobs[:, None, None, :])  # (I, K + 1, M)
     log_lam = math.log(st.lam)
     log_M = math.log(M)
 
@@ -210,7 +216,7 @@ def gibbs_indicators(st: State, data: Data, hyper: Hyper, rng: np.random.Generat
         th, J, sp = _slot_context(st, hyper, np.array([node]))
         t1, T1, p1 = _draw_aux(th, J, sp, 1, hyper, rng)
         a_th[s, m], a_T[s, m], a_pr[s, m] = t1[0, 0], T1[0, 0], p1[0, 0]
-        AUX[:, s, m] = _loglik(x, t1[0, 0], T1[0, 0], p1[0, 0, 0], p1[0, 0, 1], p1[0, 0, 2], cfg.likelihood)
+        AUX[:, s, m] = _loglik(x, t1[0, 0], T1[0, 0], p1[0, 0, 0], p1[0, 0, 1], p1[0, 0, 2], cfg.likelihood, wobs)
 
     order = rng.permutation(I)
     uniforms = rng.random(I)
@@ -285,7 +291,8 @@ def gibbs_indicators(st: State, data: Data, hyper: Hyper, rng: np.random.Generat
         a_T = np.concatenate([a_T, T1], axis=0)
         a_pr = np.concatenate([a_pr, p1], axis=0)
         AUX = np.concatenate([AUX, _loglik(x[:, None, :], t1[0][None], T1[0][None], p1[0, :, 0], p1[0, :, 1],
-                                           p1[0, :, 2], cfg.likelihood)[:, None, :]], axis=1)
+                                           p1[0, :, 2], cfg.likelihood,
+                                           None if wobs is None else wobs[:, None, :])[:, None, :]], axis=1)
         if stats is not None:
             stats.add("new_node", True)
     st.keep_nodes(n > 0)
@@ -684,7 +691,7 @@ def _choose_pair(st: State, rng: np.random.Generator) -> tuple[int, int]:
 def _propose_split(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg: SweepConfig,
                    stats: MoveStats | None, i: int, j: int, k: int, current: float) -> tuple[State, float]:
     kind = ("sib", "down", "up")[int(rng.integers(3))]
-    x = data.x
+    x = data.x_proposal
     members = np.flatnonzero(st.c == k)
     S = members[(members != i) & (members != j)]
     kids = st.children(k)
@@ -716,7 +723,7 @@ def _propose_split(st: State, data: Data, hyper: Hyper, rng: np.random.Generator
 def _propose_merge(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg: SweepConfig,
                    stats: MoveStats | None, i: int, j: int, a: int, b: int, kind: str,
                    current: float) -> tuple[State, float]:
-    x = data.x
+    x = data.x_proposal
     kids_a = st.children(a)
     kids_b = st.children(b)
     kids_a = kids_a[kids_a != b]
@@ -765,9 +772,16 @@ def _prior_target(st: State, hyper: Hyper) -> float:
 
 
 def _target(st: State, data: Data, hyper: Hyper, cfg: SweepConfig) -> float:
-    """log target of the structure moves (complete data; prior only without likelihood)."""
+    """log target of the structure moves: the observed-data log-joint (prior only without likelihood).
+
+    The missing entries are integrated out, so a structure move is judged by the
+    observed data alone; :func:`sweep` then redraws the missing entries from their
+    conditional given the new state. (Judged on the completed data, a move would
+    have to explain missing entries imputed from the current structure, which
+    locks the structure in place.)
+    """
     if cfg.likelihood:
-        return log_joint(st, data, hyper)
+        return log_joint(st, data, hyper, observed=True)
     return float(log_tree_prior(st.counts(), st.parent, st.lam) + node_prior_logpdf(st, hyper).sum())
 
 
@@ -857,6 +871,50 @@ def reverse_path(st: State, data: Data, hyper: Hyper, rng: np.random.Generator,
     return new if ok else st
 
 
+def _translation_conditionals(st: State, nodes: np.ndarray, x: np.ndarray, hyper: Hyper) -> list[tuple]:
+    """Gaussian conditionals (mean, c, e) of the translations of ``nodes`` given the rest of ``st``.
+
+    y integrated out, points' trajectories from ``x`` (the proposal data), the
+    parent's distal end and the node's own children included
+    (:func:`.model.translation_conditional`). The nodes must not be parent and
+    child of each other, so that the conditionals are independent.
+    """
+    out = []
+    for k in nodes.tolist():
+        J, s_par, _ = _node_parent(st, hyper, k)
+        kids = st.children(k)
+        xs = x[st.c == k]
+        out.append(translation_conditional(st.theta[k], st.s_x[k], st.s_yh[k], st.s_yv[k], xs.shape[0], xs.sum(0),
+                                           J, s_par, kids.size, st.T[kids].sum(0), st.s_T[k]))
+    return out
+
+
+def _redraw_translations(st: State, nodes: np.ndarray, x: np.ndarray, hyper: Hyper,
+                         rng: np.random.Generator | None) -> float:
+    """Draw the translations of ``nodes`` from their conditionals in ``st`` (in place); log density.
+
+    With ``rng`` None nothing is drawn and the log density of the current
+    translations is returned (the reverse move's proposal density).
+
+    A structure move that re-proposes a node moves its distal end; its
+    children's joints, left where they were, would pay the whole mismatch
+    (tens of nats per child at the default joint precision) and the move would
+    almost never be accepted. Redrawing the children's translations as part of
+    the proposal (and counting their density both ways) carries them along.
+    """
+    nodes = np.asarray(nodes, np.int64)
+    if nodes.size == 0:
+        return 0.0
+    if np.isin(st.parent[nodes], nodes).any():
+        raise ValueError("nodes whose translations are redrawn together must not be parent and child")
+    lq = 0.0
+    for k, (mean, c, e) in zip(nodes.tolist(), _translation_conditionals(st, nodes, x, hyper)):
+        if rng is not None:
+            st.T[k] = translation_sample(mean, st.theta[k], c, e, rng)
+        lq += translation_conditional_logpdf(st.T[k], mean, st.theta[k], c, e)
+    return lq
+
+
 def rehang_move(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg: SweepConfig,
                 stats: MoveStats | None = None, current: float | None = None) -> tuple[State, float]:
     """Sub-tree move whose root is re-fitted to its new parent (MH).
@@ -864,8 +922,11 @@ def rehang_move(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, c
     As :func:`subtree_move` (root r chosen by its number of points, new parent
     uniform outside the sub-tree), but r's own parameters are drawn afresh from
     the data-driven node proposal under the new parent, so that r can turn to
-    meet a joint elsewhere; the reverse density is that of r's current
-    parameters under the same proposal from its old parent.
+    meet a joint elsewhere, and r's children's translations are redrawn from
+    their conditionals given the proposed r (:func:`_redraw_translations`), so
+    that they follow r's distal end. The reverse densities are those of r's
+    current parameters under the same proposal from its old parent and of the
+    children's current translations under their conditionals in the current state.
     """
     if current is None:
         current = _target(st, data, hyper, cfg)
@@ -878,22 +939,33 @@ def rehang_move(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, c
     if cand.size == 0:
         return st, current
     p_new = int(cand[rng.integers(cand.size)])
-    p_old = int(st.parent[r])
-    x = data.x
-    xr = x[st.c == r]
-    kids_T = st.T[st.children(r)]
-    J_new, s_new = _parent_of(st, hyper, p_new)
-    J_old, s_old = _parent_of(st, hyper, p_old)
-    phi, lq = _node_proposal(xr, J_new, s_new, kids_T, hyper, rng)
-    _, lr = _node_proposal(xr, J_old, s_old, kids_T, hyper, rng, target=_phi(st, r))
-    new = st.copy()
-    new.parent[r] = p_new
-    _set_phi(new, r, phi)
-    proposed = _target(new, data, hyper, cfg)
-    ok = math.log(rng.random()) < proposed - current + lr - lq
+    new, proposed, log_q = _rehang_proposal(st, data, hyper, rng, cfg, r, p_new)
+    ok = math.log(rng.random()) < proposed - current + log_q
     if stats is not None:
         stats.add("rehang", ok)
     return (new, proposed) if ok else (st, current)
+
+
+def _rehang_proposal(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg: SweepConfig, r: int,
+                     p_new: int) -> tuple[State, float, float]:
+    """Re-hang node ``r`` under ``p_new`` (:func:`rehang_move`): new state, its log target, log q_rev - log q_fwd."""
+    p_old = int(st.parent[r])
+    x = data.x_proposal
+    xr = x[st.c == r]
+    kids = st.children(r)
+    # Orientation of a root child: towards its children's points (unchanged by the move).
+    toward = x[np.isin(st.c, kids)].mean(0) if kids.size else None
+    none = np.zeros((0, st.T.shape[1]), complex)
+    J_new, s_new = _parent_of(st, hyper, p_new)
+    J_old, s_old = _parent_of(st, hyper, p_old)
+    phi, lq = _node_proposal(xr, J_new, s_new, none, hyper, rng, toward=toward)
+    _, lr = _node_proposal(xr, J_old, s_old, none, hyper, rng, target=_phi(st, r), toward=toward)
+    new = st.copy()
+    new.parent[r] = p_new
+    _set_phi(new, r, phi)
+    lq += _redraw_translations(new, kids, x, hyper, rng)
+    lr += _redraw_translations(st, kids, x, hyper, None)
+    return new, _target(new, data, hyper, cfg), lr - lq
 
 
 def _reassign(kids_theta: np.ndarray, kids_T: np.ndarray, phi_a: tuple, phi_b: tuple, hyper: Hyper,
@@ -912,11 +984,15 @@ def swap_move(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg
     the data-driven node proposal (:func:`_node_proposal`), ``c`` first, then ``p``
     under the proposed ``c``; the other children of both are then shared out
     between them with probabilities from their priors under the proposed
-    parameters. The reverse move is the same kind of swap on the edge
+    parameters, and their translations are redrawn from their conditionals
+    given the proposed nodes (:func:`_redraw_translations`) so that they follow
+    the joints. The reverse move is the same kind of swap on the edge
     ``c -> p`` and the number of edges is unchanged, so the acceptance ratio is the
-    posterior ratio times the ratio of the proposal densities. It lets a stick
-    turn round and take its place in a chain (with its neighbours' children
-    following), which otherwise needs a long detour through worse states.
+    posterior ratio times the ratio of the proposal densities (the reverse
+    sharing-out is evaluated with the children's proposed translations, as the
+    reverse move would see them). It lets a stick turn round and take its place
+    in a chain (with its neighbours' children following), which otherwise needs
+    a long detour through worse states.
     """
     if current is None:
         current = _target(st, data, hyper, cfg)
@@ -924,9 +1000,19 @@ def swap_move(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg
     if has.size == 0:
         return st, current
     c = int(has[rng.integers(has.size)])
+    new, proposed, log_q = _swap_proposal(st, data, hyper, rng, cfg, c)
+    ok = math.log(rng.random()) < proposed - current + log_q
+    if stats is not None:
+        stats.add("swap", ok)
+    return (new, proposed) if ok else (st, current)
+
+
+def _swap_proposal(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg: SweepConfig,
+                   c: int) -> tuple[State, float, float]:
+    """Swap node ``c`` with its parent (:func:`swap_move`): new state, its log target, log q_rev - log q_fwd."""
     p = int(st.parent[c])
     g = int(st.parent[p])
-    x = data.x
+    x = data.x_proposal
     J_g, s_g = _parent_of(st, hyper, g)
     kids_c = st.children(c)
     kids_p = st.children(p)
@@ -940,20 +1026,68 @@ def swap_move(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg
     old_p, old_c = _phi(st, p), _phi(st, c)
     _, lr_p = _node_proposal(xp, J_g, s_g, none, hyper, rng, target=old_p, toward=xc.mean(0) if J_g is None else None)
     _, lr_c = _node_proposal(xc, distal_end(old_p[0], old_p[1], old_p[3]), old_p[5], none, hyper, rng, target=old_c)
-    was_c = np.concatenate([np.zeros(kids_p.size, bool), np.ones(kids_c.size, bool)])
-    _, lr_h = _reassign(st.theta[others], st.T[others], old_p, old_c, hyper, rng, target=was_c)
     new = st.copy()
     new.parent[c] = g
     new.parent[p] = c
     new.parent[others] = np.where(to_p, p, c)
     _set_phi(new, c, phi_c)
     _set_phi(new, p, phi_p)
+    lq_t = _redraw_translations(new, others, x, hyper, rng)
+    lr_t = _redraw_translations(st, others, x, hyper, None)
+    was_c = np.concatenate([np.zeros(kids_p.size, bool), np.ones(kids_c.size, bool)])
+    _, lr_h = _reassign(new.theta[others], new.T[others], old_p, old_c, hyper, rng, target=was_c)
     proposed = _target(new, data, hyper, cfg)
-    log_ratio = proposed - current + lr_p + lr_c + lr_h - lq_c - lq_p - lq_h
-    ok = math.log(rng.random()) < log_ratio
-    if stats is not None:
-        stats.add("swap", ok)
-    return (new, proposed) if ok else (st, current)
+    return new, proposed, lr_p + lr_c + lr_h + lr_t - lq_c - lq_p - lq_h - lq_t
+
+
+def polish_tree(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg: SweepConfig,
+                rounds: int = 3, n_best: int = 3, relax: int = 4) -> State:
+    """Greedy search over trees for the current partition (burn-in only: not a Markov kernel).
+
+    Every swap of a node with its parent and every re-hang of a node under
+    another node or the root is proposed once (:func:`_swap_proposal`,
+    :func:`_rehang_proposal`); the ``n_best`` with the highest log target are
+    relaxed by ``relax`` sweeps of the parameter kernels (structure fixed), as is
+    the current state, and the best of them replaces the current state if its
+    log target ends higher. Repeated for up to ``rounds`` rounds or until the
+    current state wins. It mends what no single exact move can: a stick hung
+    at the wrong end of a neighbour and contorted to meet it sits 100+ nats
+    below the right tree, but a proposal's data-driven parameters are no match
+    for the contorted ones until they have relaxed into the new tree.
+    """
+    fixed = SweepConfig(n_aux=cfg.n_aux, structure=False, likelihood=cfg.likelihood)
+    for _ in range(rounds):
+        if st.K < 2:
+            return st
+        A = ancestor_matrix(st.parent)
+        cands = []
+        for c in np.flatnonzero(st.parent >= 0).tolist():
+            new, val, _ = _swap_proposal(st, data, hyper, rng, cfg, c)
+            cands.append((val, new))
+        for r in range(st.K):
+            for p_new in [-1] + np.flatnonzero(~A[:, r]).tolist():
+                if p_new != st.parent[r]:
+                    new, val, _ = _rehang_proposal(st, data, hyper, rng, cfg, r, int(p_new))
+                    cands.append((val, new))
+        cands.sort(key=lambda t: -t[0])
+        x0 = data.x.copy()  # relaxing re-imputes missing entries: each candidate from the same completion
+        best_val, best, best_x = -np.inf, None, x0
+        for _, new in cands[:n_best]:
+            data.x = x0.copy()
+            for _ in range(relax):
+                new = sweep(new, data, hyper, rng, fixed)
+            val = _target(new, data, hyper, cfg)
+            if val > best_val:
+                best_val, best, best_x = val, new, data.x
+        data.x = x0.copy()
+        cur = st.copy()
+        for _ in range(relax):
+            cur = sweep(cur, data, hyper, rng, fixed)
+        if best is None or best_val <= _target(cur, data, hyper, cfg):
+            return cur
+        st = best
+        data.x = best_x
+    return st
 
 
 # ------------------------------------------------------------- parameters
@@ -980,26 +1114,37 @@ def update_translations(st: State, data: Data, hyper: Hyper, rng: np.random.Gene
 
 
 def update_translations_given_y(st: State, data: Data, y: np.ndarray, hyper: Hyper,
-                                rng: np.random.Generator) -> None:
+                                rng: np.random.Generator, observed_only: bool = False) -> None:
     """Gibbs update of every node's translations given y (eqs. 15-17 with ``Delta x_i = x_i - R_k y_i``).
 
-    Per frame the conditional is Gaussian with precision ``n s_x + h s_T + s_parent``;
-    used where the local positions are known (imputation on new frames).
+    Per frame the conditional is Gaussian with precision ``n_f s_x + h s_T + s_parent``,
+    ``n_f`` the node's points counted in frame ``f``. With ``observed_only`` only the
+    observed entries count (the missing ones integrated out: given y they are
+    independent of everything but their own frame's parameters, so they simply
+    drop out); ``y`` must then be a draw given the observed entries alone
+    (:func:`.state.sample_y` with ``observed_only``). Otherwise the complete data
+    (observed plus current imputation) are used.
     """
-    F = data.n_frames
     K = st.K
     Z = np.zeros((K, data.n_points))
     Z[st.c, np.arange(data.n_points)] = 1.0
-    n = Z.sum(1)
+    if observed_only and data.has_missing:
+        W = data.w
+        nf = Z @ W  # (K, F)
+        Zx = Z @ (W * data.x)
+        Zy = Z @ (W * y[:, None])
+    else:
+        nf = np.repeat(Z.sum(1)[:, None], data.n_frames, axis=1)
+        Zx = Z @ data.x
+        Zy = np.repeat((Z @ y)[:, None], data.n_frames, axis=1)
+    F = data.n_frames
     for k in rng.permutation(K):
         J, s_par, _ = _node_parent(st, hyper, k)
         kids = st.children(k)
         rot = np.exp(1j * st.theta[k])
         L = 6.0 / np.sqrt(st.s_yh[k])
-        prec = n[k] * st.s_x[k] + kids.size * st.s_T[k] + s_par
-        b = s_par * J + 0j
-        if n[k]:
-            b = b + st.s_x[k] * (Z[k] @ data.x - rot * (Z[k] @ y))
+        prec = nf[k] * st.s_x[k] + kids.size * st.s_T[k] + s_par
+        b = s_par * J + st.s_x[k] * (Zx[k] - rot * Zy[k])
         if kids.size:
             b = b + st.s_T[k] * (st.T[kids].sum(0) - kids.size * rot * L)
         z = rng.standard_normal(F) + 1j * rng.standard_normal(F)
@@ -1055,11 +1200,13 @@ def rotation_shift(st: State, data: Data, hyper: Hyper, rng: np.random.Generator
 
 
 def update_rotations(st: State, data: Data, y: np.ndarray, hyper: Hyper, rng: np.random.Generator,
-                     likelihood: bool = True, stats: MoveStats | None = None) -> None:
+                     likelihood: bool = True, stats: MoveStats | None = None, observed_only: bool = False) -> None:
     """Von Mises updates of every angle given y (eqs. 19-21), corrected for the chain's normalisers.
 
     Angles of one colour ``(f + 2 depth) mod 3`` are conditionally independent and
-    are updated together.
+    are updated together. With ``observed_only`` the data term sums over the
+    observed entries only (the missing ones integrated out given y; ``y`` must
+    then be drawn given the observed entries alone).
     """
     K, F = st.theta.shape
     kr, kn = hyper.kappa_rho, hyper.kappa_nd
@@ -1074,8 +1221,12 @@ def update_rotations(st: State, data: Data, y: np.ndarray, hyper: Hyper, rng: np
     if likelihood:
         Z = np.zeros((K, data.n_points))
         Z[st.c, np.arange(data.n_points)] = 1.0
-        Yx = Z @ (np.conj(y)[:, None] * data.x)  # (K, F)
-        Ysum = Z @ np.conj(y)  # (K,)
+        if observed_only and data.has_missing:
+            Yx = Z @ (data.w * np.conj(y)[:, None] * data.x)  # (K, F)
+            Ysum = Z @ (data.w * np.conj(y)[:, None])  # (K, F)
+        else:
+            Yx = Z @ (np.conj(y)[:, None] * data.x)  # (K, F)
+            Ysum = (Z @ np.conj(y))[:, None]  # (K, 1)
     for col in range(3):
         mask = colour == col
         if not mask.any():
@@ -1088,7 +1239,7 @@ def update_rotations(st: State, data: Data, y: np.ndarray, hyper: Hyper, rng: np
         csum = Pm @ st.T
         ab += (st.s_T * L)[:, None] * (csum - h[:, None] * st.T)
         if likelihood:
-            ab += st.s_x[:, None] * (Yx - st.T * Ysum[:, None])
+            ab += st.s_x[:, None] * (Yx - st.T * Ysum)
         prop = rng.vonmises(np.angle(ab), np.abs(ab))
 
         def g(theta_k: np.ndarray) -> np.ndarray:
@@ -1216,6 +1367,32 @@ def slice_horizontal_precisions(st: State, data: Data, hyper: Hyper, rng: np.ran
     st.s_yh = np.exp(_slice_sample(logp, np.log(st.s_yh), 0.3, rng))
 
 
+def update_kappa_nd(st: State, hyper: Hyper, rng: np.random.Generator) -> Hyper:
+    """Slice sampling of kappa_nd (an angle's tie to its previous frame) in log space; returns the new Hyper.
+
+    Its conditional involves only the angles' chain prior (eqs. 4-5, every
+    node's normalisers ``I0(A)`` included) and its Gamma(``kappa_nd_a``,
+    ``kappa_nd_b``) prior: ``log p(u) = sum_k log G(theta_k | theta_parent; kappa_rho, e^u)
+    + a u - b e^u`` for ``u = log kappa_nd`` (the Jacobian gives ``a`` instead of ``a - 1``).
+    With the paper's fixed ``kappa_nd = 1`` an angle in a frame where its stick
+    is unseen is known to within about 0.7 rad from its neighbouring frames, so
+    the posterior-mean position of an occluded point shrinks towards the
+    joint; figures that move smoothly from frame to frame get a far larger
+    kappa_nd here, and occluded sticks follow their neighbouring frames.
+    """
+    has = st.parent >= 0
+    th_par = np.where(has[:, None], st.theta[np.maximum(st.parent, 0)], 0.0)
+    a, b = hyper.kappa_nd_a, hyper.kappa_nd_b
+
+    def logp(u: np.ndarray) -> np.ndarray:
+        k = float(np.exp(u[0]))
+        return np.array([float(rotation_prior_logpdf(st.theta, th_par, hyper.kappa_rho, k).sum())
+                         + a * u[0] - b * k])
+
+    u = _slice_sample(logp, np.array([math.log(hyper.kappa_nd)]), 1.0, rng)
+    return replace(hyper, kappa_nd=float(np.exp(u[0])))
+
+
 def update_lambda(st: State, n_points: int, hyper: Hyper, rng: np.random.Generator) -> None:
     """Escobar & West (1995) auxiliary-variable update of lambda under a Gamma prior.
 
@@ -1260,6 +1437,19 @@ def sweep(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg: Sw
             st = reverse_path(st, data, hyper, rng, stats)
             st, _ = swap_move(st, data, hyper, rng, cfg, stats)
             st, _ = rehang_move(st, data, hyper, rng, cfg, stats)
+    if lik and data.has_missing:
+        # The structure moves above and this block target the posterior with the
+        # missing entries integrated out (given y they drop out of the translation
+        # and rotation conditionals), so that a stick hidden in a frame follows its
+        # joint and neighbouring frames instead of the values imputed from its own
+        # current pose (data augmentation would make those frames crawl). None of
+        # them reads the current imputation, so drawing a fresh one from
+        # p(x_mis | state, x_obs) afterwards makes the whole a valid kernel on the
+        # joint of state and missing entries. The kernels below use the completion.
+        y = sample_y(st, data, rng, observed_only=True)
+        update_translations_given_y(st, data, y, hyper, rng, observed_only=True)
+        update_rotations(st, data, y, hyper, rng, lik, None, observed_only=True)
+        impute_missing(st, data, y, rng)
     update_translations(st, data, hyper, rng, lik)
     rotation_shift(st, data, hyper, rng, lik, stats)
     y = sample_y(st, data, rng)

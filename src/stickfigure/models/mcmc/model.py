@@ -95,6 +95,10 @@ class Hyper:
     update_lambda : bool
         Sample lambda (Escobar & West) under a Gamma(lambda_a, lambda_b) prior.
     lambda_a, lambda_b : float
+    update_kappa_nd : bool
+        Sample kappa_nd (the tie of an angle to its previous frame) under a
+        Gamma(kappa_nd_a, kappa_nd_b) prior; ``kappa_nd`` is then its current value.
+    kappa_nd_a, kappa_nd_b : float
     """
 
     a_sx: float = 10.0
@@ -112,6 +116,9 @@ class Hyper:
     update_lambda: bool = True
     lambda_a: float = 1.0
     lambda_b: float = 1.0
+    update_kappa_nd: bool = False
+    kappa_nd_a: float = 1.0
+    kappa_nd_b: float = 0.01
 
     def as_dict(self) -> dict[str, float]:
         return asdict(self)
@@ -181,8 +188,17 @@ def marginal_loglik(x: np.ndarray, theta: np.ndarray, T: np.ndarray, s_x: np.nda
 
 
 def y_posterior(x: np.ndarray, theta: np.ndarray, T: np.ndarray, s_x: np.ndarray, s_yh: np.ndarray,
-                s_yv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                s_yv: np.ndarray, w: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Gaussian posterior of the local positions y_i given a node's parameters.
+
+    Parameters
+    ----------
+    x : complex ndarray, shape (..., F)
+    theta : ndarray, shape (..., F)
+    T : complex ndarray, shape (..., F)
+    s_x, s_yh, s_yv : ndarray, shape (...)
+    w : ndarray of {0, 1}, shape (..., F), optional
+        Which frames count (observed); all of them when omitted.
 
     Returns
     -------
@@ -190,8 +206,12 @@ def y_posterior(x: np.ndarray, theta: np.ndarray, T: np.ndarray, s_x: np.ndarray
     var_h, var_v : ndarray, shape (...)
         Variances along and across the stick (the posterior is axis-aligned since R^T R = F I).
     """
-    F = x.shape[-1]
-    z = (np.exp(-1j * theta) * (x - T)).sum(-1)  # sum_f R_f^T (x_f - T_f)
+    if w is None:
+        F = x.shape[-1]
+        z = (np.exp(-1j * theta) * (x - T)).sum(-1)  # sum_f R_f^T (x_f - T_f)
+    else:
+        F = w.sum(-1)
+        z = (w * np.exp(-1j * theta) * (x - T)).sum(-1)
     prec_h = s_yh + F * s_x
     prec_v = s_yv + F * s_x
     half = 3.0 / np.sqrt(s_yh)

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from .data import initial_imputation, initial_state
-from .kernels import MoveStats, SweepConfig, sweep
+from .kernels import MoveStats, SweepConfig, polish_tree, sweep, update_kappa_nd
 from .model import Hyper, y_posterior
 from .state import Data, State, log_joint
 
@@ -40,11 +40,19 @@ class ChainSettings:
         Number of k-means clusters of the starting state (0: one per ``init_size`` points).
     init_size : int
     anneal : float
-        Fraction of the burn-in during which the joint ties are loosened
-        (:func:`_tempered_sweep`), their strength rising from ``beta0`` to 1
-        (0: no annealing). Burn-in draws are discarded; afterwards every
-        kernel samples the model itself.
+        Fraction of the burn-in spent in annealed starts (0: no annealing).
+        In each start the joint ties are loosened (:func:`_tempered_sweep`),
+        their strength rising from ``beta0`` to 1 over 80% of the start; the
+        rest of the start samples the model itself. Burn-in draws are
+        discarded; afterwards every kernel samples the model itself.
     beta0 : float
+    n_starts : int
+        Annealed starts in the burn-in, each from a fresh starting state; the
+        chain goes on from the one whose log-joint over its last sweeps is
+        highest (see :func:`run_chain`).
+    polish : bool
+        At the end of each start's annealing, a greedy search over trees for
+        the partition reached (:func:`.kernels.polish_tree`).
     """
 
     n_sweeps: int = 600
@@ -54,6 +62,8 @@ class ChainSettings:
     init_size: int = 4
     anneal: float = 0.8
     beta0: float = 0.01
+    n_starts: int = 3
+    polish: bool = True
 
 
 def _record(st: State, data: Data) -> dict[str, Any]:
@@ -83,10 +93,33 @@ def _tempered_sweep(st: State, data: Data, hyper: Hyper, rng: np.random.Generato
     return st
 
 
+def _start_lengths(settings: ChainSettings) -> list[int]:
+    """Sweeps of each annealed start (their sum is at most the burn-in)."""
+    total = int(settings.anneal * settings.burn_in)
+    n = max(1, int(settings.n_starts))
+    if total < 2 * n:  # too short to split: one start (or none)
+        return [total] if total > 0 else []
+    return [total // n] * n
+
+
 def run_chain(z: np.ndarray, hyper: Hyper, cfg: SweepConfig, settings: ChainSettings,
               seed: np.random.SeedSequence | int, chain_id: int = 0, progress: bool = False,
               init: State | None = None) -> dict[str, Any]:
     """Run one chain on model-coordinate data.
+
+    Burn-in (discarded): ``settings.n_starts`` annealed starts, each from a fresh
+    starting state (``init`` or k-means clusters, the imputation of missing
+    entries reset), with the joint ties tightening from ``beta0`` to 1 over 80%
+    of the start and the model itself for the rest. The chain goes on from the
+    start whose observed-data log-joint, averaged over its last sweeps (a fifth
+    of the start, at least 3), is highest, and samples the model itself for the
+    rest of the burn-in and after it. This is a way of *starting* the chain:
+    a start can end in a tree that no single move can leave (a stick hung at
+    the wrong end of its neighbour and contorted to meet it, 100+ nats below
+    the right tree, see docs/mcmc.md); several starts make that far less likely
+    for the state the chain goes on from. Every kept draw comes from the exact
+    kernels, and each chain chooses among its own starts only, so the chains
+    stay independent and R-hat still compares independent runs.
 
     Parameters
     ----------
@@ -103,22 +136,25 @@ def run_chain(z: np.ndarray, hyper: Hyper, cfg: SweepConfig, settings: ChainSett
     Returns
     -------
     dict
-        ``trace_log_joint``, ``trace_n_sticks``, ``trace_lambda`` (every sweep, observed-data
-        log-joint), and the kept draws: ``c`` (D, I), ``parent`` (D, Kmax; -2 pads),
-        ``theta`` (D, Kmax, F), ``T`` (D, Kmax, F) complex, ``prec`` (D, Kmax, 4), ``y`` (D, I)
-        complex (posterior mean local positions given the draw), ``log_joint``, ``n_sticks``,
-        ``lam`` (D,); ``pred_mean`` (I, F) complex, the posterior mean prediction of every
-        entry; ``acceptance`` (dict); ``final_state``.
+        ``trace_log_joint``, ``trace_n_sticks``, ``trace_lambda``, ``trace_kappa_nd`` (every sweep, observed-data
+        log-joint; the burn-in's starts one after the other), and the kept draws: ``c`` (D, I),
+        ``parent`` (D, Kmax; -2 pads), ``theta`` (D, Kmax, F), ``T`` (D, Kmax, F) complex,
+        ``prec`` (D, Kmax, 4), ``y`` (D, I) complex (posterior mean local positions given the
+        draw), ``log_joint``, ``n_sticks``, ``lam``, ``kappa_nd`` (D,); ``pred_mean`` (I, F) complex, the
+        posterior mean prediction of every entry; ``acceptance`` (dict); ``start_scores`` (the
+        score of every annealed start) and ``start_chosen``; ``final_state``.
     """
     rng = np.random.default_rng(seed)
     observed = ~np.isnan(z)
-    data = Data(x=initial_imputation(z), observed=observed)
     I = z.shape[0]
-    if init is None:
-        k0 = settings.init_clusters or max(1, int(round(I / settings.init_size)))
-        st = initial_state(data, hyper, rng, k0)
-    else:
-        st = init.copy()
+
+    def fresh() -> tuple[State, Data]:
+        data = Data(x=initial_imputation(z), observed=observed)
+        if init is None:
+            k0 = settings.init_clusters or max(1, int(round(I / settings.init_size)))
+            return initial_state(data, hyper, rng, k0), data
+        return init.copy(), data
+
     stats = MoveStats()
     n = int(settings.n_sweeps)
     tr_lj = np.empty(n)
@@ -131,32 +167,70 @@ def run_chain(z: np.ndarray, hyper: Hyper, cfg: SweepConfig, settings: ChainSett
         from tqdm.auto import tqdm
 
         bar = tqdm(total=n, desc=f"chain {chain_id}", position=chain_id, leave=True, mininterval=0.5)
-    n_anneal = int(settings.anneal * settings.burn_in)
+
+    tr_kappa = np.empty(n)
+
+    def record(s: int, st: State, data: Data, hy: Hyper) -> None:
+        tr_lj[s] = log_joint(st, data, hy, observed=True)
+        tr_k[s] = st.K
+        tr_lam[s] = st.lam
+        tr_kappa[s] = hy.kappa_nd
+        if bar is not None:
+            bar.update(1)
+            if s % 20 == 0:
+                bar.set_postfix(K=st.K, logp=f"{tr_lj[s]:.1f}", refresh=False)
+
+    s = 0
+    scores: list[float] = []
+    best: tuple[float, State, Data, Hyper] | None = None
+
+    def model_sweep(st: State, data: Data, hy: Hyper, stats: MoveStats | None = None) -> tuple[State, Hyper]:
+        st = sweep(st, data, hy, rng, cfg, stats)
+        if hy.update_kappa_nd:
+            hy = update_kappa_nd(st, hy, rng)
+        return st, hy
+
     try:
-        for s in range(n):
-            beta = settings.beta0 + (1.0 - settings.beta0) * s / n_anneal if s < n_anneal else 1.0
-            if beta < 1.0:
-                st = _tempered_sweep(st, data, hyper, rng, cfg, beta)
-            else:
-                st = sweep(st, data, hyper, rng, cfg, stats)
-            tr_lj[s] = log_joint(st, data, hyper, observed=True)
-            tr_k[s] = st.K
-            tr_lam[s] = st.lam
+        for length in _start_lengths(settings):
+            st, data = fresh()
+            hy = hyper
+            n_anneal = max(1, int(0.8 * length))
+            for t in range(length):
+                beta = settings.beta0 + (1.0 - settings.beta0) * t / n_anneal if t < n_anneal else 1.0
+                if t == n_anneal and settings.polish and cfg.structure:
+                    st = polish_tree(st, data, hy, rng, cfg)
+                if beta < 1.0:
+                    st = _tempered_sweep(st, data, hy, rng, cfg, beta)
+                else:
+                    st, hy = model_sweep(st, data, hy)
+                record(s, st, data, hy)
+                s += 1
+            m = max(3, length // 5)
+            score = float(np.mean(tr_lj[s - min(m, length):s]))
+            scores.append(score)
+            if best is None or score > best[0]:
+                best = (score, st, data, hy)
+        if best is None:
+            st, data = fresh()
+            hy = hyper
+        else:
+            _, st, data, hy = best
+        for s in range(s, n):
+            st, hy = model_sweep(st, data, hy, stats)
+            record(s, st, data, hy)
             if s >= settings.burn_in and (s - settings.burn_in) % settings.thin == 0:
                 rec = _record(st, data)
                 rec["log_joint"], rec["n_sticks"], rec["lam"] = tr_lj[s], st.K, st.lam
+                rec["kappa_nd"] = hy.kappa_nd
                 pred_sum += rec.pop("pred")
                 draws.append(rec)
-            if bar is not None:
-                bar.update(1)
-                if s % 20 == 0:
-                    bar.set_postfix(K=st.K, logp=f"{tr_lj[s]:.1f}", refresh=False)
     finally:
         if bar is not None:
             bar.close()
     out = stack_draws(draws, z.shape[1])
-    out.update(trace_log_joint=tr_lj, trace_n_sticks=tr_k, trace_lambda=tr_lam,
-               pred_mean=pred_sum / max(len(draws), 1), acceptance=stats.rates(), final_state=st)
+    out.update(trace_log_joint=tr_lj, trace_n_sticks=tr_k, trace_lambda=tr_lam, trace_kappa_nd=tr_kappa,
+               pred_mean=pred_sum / max(len(draws), 1), acceptance=stats.rates(), final_state=st,
+               start_scores=np.array(scores), start_chosen=int(np.argmax(scores)) if scores else -1)
     return out
 
 
@@ -175,6 +249,7 @@ def stack_draws(draws: list[dict[str, Any]], F: int) -> dict[str, np.ndarray]:
         "log_joint": np.array([d["log_joint"] for d in draws], float),
         "n_sticks": np.array([d["n_sticks"] for d in draws], np.int64),
         "lam": np.array([d["lam"] for d in draws], float),
+        "kappa_nd": np.array([d.get("kappa_nd", np.nan) for d in draws], float),
     }
     for t, d in enumerate(draws):
         K = d["parent"].shape[0]

@@ -38,14 +38,32 @@ class Data:
     x : complex ndarray, shape (I, F)
         Observed entries and the current imputation of the missing ones.
     observed : bool ndarray, shape (I, F)
+
+    The missing entries of ``x`` as it was given (the starting imputation, a
+    fixed function of the observed data) are kept: see :attr:`x_proposal`.
     """
 
     x: np.ndarray
     observed: np.ndarray
     w: np.ndarray = field(init=False, repr=False)
+    _x_start: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         self.w = self.observed.astype(float)
+        self._x_start = self.x.copy()
+
+    @property
+    def x_proposal(self) -> np.ndarray:
+        """What the structure moves build their data-driven proposals from, complex (I, F).
+
+        The observed entries, and at the missing ones the starting imputation
+        (not the current one). The structure moves target the posterior with the
+        missing entries integrated out; a proposal that depended on their current
+        values (which follow the current structure) would not leave it invariant.
+        """
+        if not self.has_missing:
+            return self.x
+        return np.where(self.observed, self.x, self._x_start)
 
     @property
     def n_points(self) -> int:
@@ -180,13 +198,21 @@ def log_joint(st: State, data: Data, hyper: Hyper, observed: bool = False) -> fl
     lp = log_tree_prior(st.counts(), st.parent, st.lam) + node_prior_logpdf(st, hyper).sum()
     if hyper.update_lambda:
         lp += float(gamma_logpdf(st.lam, hyper.lambda_a, hyper.lambda_b))
+    if hyper.update_kappa_nd:
+        lp += float(gamma_logpdf(hyper.kappa_nd, hyper.kappa_nd_a, hyper.kappa_nd_b))
     return float(ll + lp)
 
 
-def sample_y(st: State, data: Data, rng: np.random.Generator) -> np.ndarray:
-    """Draw every point's local position from its conditional, complex shape (I,)."""
+def sample_y(st: State, data: Data, rng: np.random.Generator, observed_only: bool = False) -> np.ndarray:
+    """Draw every point's local position from its conditional, complex shape (I,).
+
+    With ``observed_only`` the conditional given the observed entries alone (the
+    missing ones integrated out), as needed to redraw the missing entries from
+    ``p(x_mis | state, x_obs)`` (:func:`.kernels.impute_missing`).
+    """
     c = st.c
-    mean, vh, vv = y_posterior(data.x, st.theta[c], st.T[c], st.s_x[c], st.s_yh[c], st.s_yv[c])
+    w = data.w if observed_only and data.has_missing else None
+    mean, vh, vv = y_posterior(data.x, st.theta[c], st.T[c], st.s_x[c], st.s_yh[c], st.s_yv[c], w)
     I = mean.shape[0]
     return mean + np.sqrt(vh) * rng.standard_normal(I) + 1j * np.sqrt(vv) * rng.standard_normal(I)
 
