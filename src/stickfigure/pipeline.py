@@ -34,6 +34,7 @@ import inspect
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -185,8 +186,17 @@ def learn(
     if tracked or traj.missing_fraction > max_missing:
         traj = best_window(traj, max_points=max_points, max_frames=400 if tracked else None)
         w = traj.meta["window"]
+        off = traj.meta.get("frame_offset", 0)
         _say(progress, f"learning from {w['points']} of {w['of_points']} points over frames "
-                       f"{traj.meta.get('frame_offset', 0)}-{traj.meta.get('frame_offset', 0) + traj.n_frames - 1}")
+                       f"{off}-{off + traj.n_frames - 1}")
+        for c in w.get("candidates", []) if len(w.get("candidates", [])) > 1 else []:
+            _say(progress, f"  frames {c['first']}-{c['last']}: {c['points']} points, {c['independent']} moving "
+                           f"independently of the scene/background{'  <- chosen' if c['chosen'] else ''}")
+        if w.get("verdict", "independent motion") != "independent motion":
+            # Said whether or not progress is shown: the skeleton is not a figure's.
+            warnings.warn(w["message"], UserWarning, stacklevel=2)
+        else:
+            _say(progress, w["message"])
     outdir.mkdir(parents=True, exist_ok=True)
     out["points"] = Path(sf.save(traj, outdir / "points.npz") or outdir / "points.npz")
 
