@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import cv2
 import numpy as np
 import pytest
@@ -382,18 +380,20 @@ def test_best_window_bad_input(small_figure):
 # ------------------------------------------------------------------ real clips
 @pytest.mark.data
 def test_bikes(data_dir):
-    t0 = time.perf_counter()
     traj = track_video(data_dir / "video" / "bikes.mp4", stop=100)
-    elapsed = time.perf_counter() - t0
     assert traj.image_size == (640, 272)
     assert traj.n_frames == 100
     # bikes.mp4 is edited: cuts after frames 29 and 75.
     assert traj.meta["shots"] == [0, 30, 76]
     assert traj.n_points > 50
-    assert elapsed < 30
     win = best_window(traj)
-    assert win.n_points >= 10 and win.n_frames >= 20
+    assert win.n_points >= 10 and win.n_frames >= 10
     assert win.missing_fraction < 0.2
+    # Frames 30-75: a camera moving past parked cars. Most tracks are there, but one rigid scene explains them,
+    # so that window is not what a skeleton is learned from.
+    street = [c for c in win.meta["window"]["candidates"] if c["first"] >= 30 and c["last"] < 76]
+    assert len(street) == 1 and not street[0]["chosen"]
+    assert street[0]["points"] >= 50 and street[0]["scene_points"] >= 0.9 * street[0]["points"]
 
 
 @pytest.mark.data
@@ -545,3 +545,27 @@ def test_rigid_residuals_explain_parallax_not_independent_motion():
     res = _rigid_residuals(xy, 4, 1.0, np.random.default_rng(0))
     assert np.all(res[:60] < 1.0)
     assert np.all(res[60:] > 3.0)
+
+
+def test_best_window_verdict_one_rigid_body_or_several():
+    """Points of one body moving in the image: 'one rigid body'; two bodies moving apart: independent motion."""
+    rng = np.random.default_rng(3)
+    F = 50
+    f = np.arange(F)
+
+    def body(n, centre, vel, omega, scale_rate):
+        local = rng.uniform(-25, 25, size=(n, 2))
+        ang, sc = omega * f, 1 + scale_rate * f
+        R = np.stack([np.stack([np.cos(ang), -np.sin(ang)], 1), np.stack([np.sin(ang), np.cos(ang)], 1)], 1)
+        return (np.einsum("fij,pj->pfi", R * sc[:, None, None], local)
+                + (np.asarray(centre) + np.outer(f, vel))[None])
+
+    car = body(30, (100, 100), (2.0, 0.5), 0.01, 0.004)
+    other = body(30, (250, 150), (-1.0, 1.5), -0.02, 0.0)
+    for bodies, verdict in (([car], "one rigid body"), ([car, other], "independent motion")):
+        xy = np.concatenate(bodies) + rng.normal(scale=0.3, size=(30 * len(bodies), F, 2))
+        xy[::7, :5] = np.nan  # tracks that start late
+        tr = sf.Trajectories(xy, image_size=(400, 300))
+        w = best_window(tr).meta["window"]
+        assert w["verdict"] == verdict, w["message"]
+    assert "no articulated motion" in best_window(sf.Trajectories(car, image_size=(400, 300))).meta["window"]["message"]

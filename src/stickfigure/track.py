@@ -41,11 +41,14 @@ an absolute number of frames). See ``docs/tracking.md``.
 Choosing what to learn from
 ---------------------------
 Skeleton methods need points that are observed over a good part of the frames
-they are fitted to. :func:`best_window` picks the frame window and the points
-that hold the most observations (points observed in at least ``coverage`` of the
-window, times the window's length), keeps at most ``max_points`` of them spread
-over the image, and never crosses a shot cut. :func:`stickfigure.pipeline.learn`
-uses it on tracked videos.
+they are fitted to, and that move relative to each other other than the way a
+camera moving through a rigid scene makes them. :func:`best_window` takes each
+shot's best-covered window (points observed in at least ``coverage`` of it),
+sets aside the points one rigid scene explains where the camera moved
+(``meta["camera"]``, recorded by :func:`track_video`), and keeps the window
+with the most points moving on their own; ``meta["window"]["verdict"]`` says
+when there are none, or when they move as one rigid body.
+:func:`stickfigure.pipeline.learn` uses it on tracked videos.
 """
 
 from __future__ import annotations
@@ -750,7 +753,8 @@ def best_window(
         indep = qual[~scene]
         rigid = None
         if indep.size > 4 and traj.n_dims == 2:
-            rigid = float(np.mean(_rigid_residuals(traj.xy[indep, a0:a0 + L], 3, 0.5 * tol, rng) < 0.5 * tol))
+            res = _similarity_residuals(traj.xy[indep, a0:a0 + L], 0.5 * tol, rng)
+            rigid = float(np.mean(res < 0.5 * tol)) if np.isfinite(res).any() else None
         m = indep.size if cap is None else min(indep.size, cap)
         rows.append({"shot": s, "start": a0, "stop": a0 + L, "first": offset + a0, "last": offset + a0 + L - 1,
                      "points": int(qual.size), "scene_points": int(scene.sum()), "independent": int(indep.size),
@@ -867,6 +871,56 @@ def _subspace_rms(B: np.ndarray, X: np.ndarray, M: np.ndarray, full: np.ndarray)
         c = np.linalg.solve(G, np.einsum("nkr,nk->nr", Bm, X[part])[..., None])[..., 0]
         r2[part] = (((X[part] - c @ Q.T) * M[part]) ** 2).sum(axis=1)
     return np.sqrt(r2 / n_obs)
+
+
+def _similarity_residuals(xy: np.ndarray, tol: float, rng: np.random.Generator, *,
+                          n_hypotheses: int = 200) -> np.ndarray:
+    """RMS residual of each trajectory under the dominant 2D similarity motion, shape (n,).
+
+    One body moving in the image (turning, moving, nearing the camera) moves
+    its points by one similarity per frame, ``x_pf = s_f R_f c_p + t_f``.
+    Hypotheses come from two complete trajectories drawn at random (their
+    positions in the first frame fix the gauge, each frame's similarity is
+    the one taking them there); each point's ``c_p`` is its least-squares
+    position in that gauge. The hypothesis with most points within ``tol`` is
+    refitted to them (each frame's least-squares similarity) once. Unlike an
+    affine motion, a similarity cannot map two bodies moving apart.
+    """
+    n, L, _ = xy.shape
+    obs = np.isfinite(xy).all(axis=2)
+    z = np.where(obs, xy[..., 0] + 1j * xy[..., 1], 0)  # (n, L) complex positions
+    complete = np.flatnonzero(obs.all(axis=1))
+    if complete.size < 3:
+        return np.full(n, np.inf)
+
+    def residuals(m: np.ndarray, t: np.ndarray) -> np.ndarray:
+        # z_pf ~ m_f c_p + t_f with complex m (scale and rotation): c_p by least squares.
+        w = obs * np.abs(m) ** 2
+        c = (np.conj(m) * (z - t) * obs).sum(axis=1) / np.maximum(w.sum(axis=1), 1e-12)
+        r = np.abs(z - (m * c[:, None] + t)) ** 2 * obs
+        return np.sqrt(r.sum(axis=1) / np.maximum(obs.sum(axis=1), 1))
+
+    best, best_n = None, -1
+    for _ in range(int(n_hypotheses)):
+        p, q = rng.choice(complete, 2, replace=False)
+        d0 = z[q, 0] - z[p, 0]
+        if abs(d0) < 1e-6:
+            continue
+        m = (z[q] - z[p]) / d0
+        t = z[p] - m * z[p, 0]
+        res = residuals(m, t)
+        k = int((res < tol).sum())
+        if k > best_n:
+            best, best_n = res, k
+    if best is None:
+        return np.full(n, np.inf)
+    inl = np.flatnonzero((best < tol) & obs.all(axis=1))
+    if inl.size >= 3:  # each frame's least-squares similarity from the inliers' frame-0 positions
+        c = z[inl, 0]
+        cm, zm = c.mean(), z[inl].mean(axis=0)
+        m = (np.conj(c - cm)[:, None] * (z[inl] - zm)).sum(axis=0) / max((np.abs(c - cm) ** 2).sum(), 1e-12)
+        best = residuals(m, zm - m * cm)
+    return best
 
 
 def _rigid_residuals(xy: np.ndarray, rank: int, tol: float, rng: np.random.Generator, *,

@@ -143,13 +143,18 @@ def _overview(skeleton: Skeleton, traj: Trajectories, q: dict[str, Any]) -> str:
     return kpis(items) + table(["input", ""], rows)
 
 
+def _sentence(text: Any) -> str:
+    text = str(text)
+    return text[:1].upper() + text[1:]
+
+
 def _banner(traj: Trajectories) -> str:
     """A warning at the top of the page when the window holds no articulated motion."""
     w = traj.meta.get("window")
     if not isinstance(w, dict) or w.get("verdict", "independent motion") == "independent motion":
         return ""
-    return (f'<div class="banner" role="alert"><strong>{esc(str(w.get("verdict", "")).capitalize())}.</strong> '
-            f'{esc(w.get("message", ""))}. Read the skeleton below with that in mind; to learn from another part '
+    return (f'<div class="banner" role="alert"><strong>Not a figure\'s skeleton?</strong> '
+            f'{esc(_sentence(w.get("message", "")))}. Read the skeleton below with that in mind; to learn from another part '
             'of the video, pass <code>--frames A:B</code> and/or <code>--roi X,Y,W,H</code>.</div>')
 
 
@@ -167,7 +172,7 @@ def _selection(traj: Trajectories) -> str:
     head = ["chosen", "frames", "points", "camera travel (px)", "rigid scene", "moving on their own",
             "one rigid motion explains", "score"]
     tol = w.get("scene_tolerance_px")
-    body = (f'<p>{esc(w.get("message", ""))}.</p>'
+    body = (f'<p>{esc(_sentence(w.get("message", "")))}.</p>'
             + table(head, rows, numeric=[False, False, True, True, True, True, True, True])
             + '<p class="note">One candidate per shot: the window whose points, each observed in at least '
             f'{100 * w.get("coverage", 0):.0f}% of its frames, cover it best. Where the camera moved, one rigid '
