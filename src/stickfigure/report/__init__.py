@@ -180,7 +180,8 @@ def _selection(traj: Trajectories) -> str:
             f'by RANSAC; the points it explains to within {fmt(tol)} px are the scene, not a figure. Where the '
             'camera was still, the tracker has already removed the static background. The window with the most '
             'points moving on their own (score: their number × √frames) is learned from, with only those '
-            'points. “One rigid motion explains” is the share of them a single rigid motion of a plane explains; '
+            'points. “One rigid motion explains” is the share of them one 2D similarity per frame (one body '
+            'turning, moving, nearing the camera) explains; '
             'at 80% or more they move as one body and there is nothing for a skeleton to split.</p>')
     return body
 
