@@ -236,3 +236,37 @@ def test_learn_from_mocap_file(tmp_path, data_dir):
     assert pts.n_dims == 2 and pts.n_frames == 60 and pts.n_points == P
     assert pts.meta["projection"]["azimuth"] == 45.0  # the isometric view
     assert "131_01.bvh" in out["report"].read_text(encoding="utf-8")
+
+
+# ------------------------------------------- a rigid scene before the figure; a video with no figure
+@pytest.mark.slow
+def test_learn_picks_the_articulated_shot_not_the_rigid_pan(tmp_path):
+    """A long pan past a rigid scene with parallax, then a short articulated arm: the arm is learned."""
+    from test_track import PAN_FRAMES, _on_arm, write_pan_then_arm
+
+    video = write_pan_then_arm(tmp_path / "pan_arm.avi", pan_frames=60)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)  # nothing to warn about: the arm moves on its own
+        out = learn(video, tmp_path / "o", method=QUICK, max_points=60)
+    pts = sf.load(out["points"])
+    w = pts.meta["window"]
+    assert pts.meta["frame_offset"] >= 60 and w["verdict"] == "independent motion"
+    pts.meta["frame_offset"] += PAN_FRAMES - 60  # _on_arm counts arm frames from PAN_FRAMES
+    assert _on_arm(pts).mean() > 0.95
+    html = out["report"].read_text(encoding="utf-8")
+    assert "What it was learned from" in html and 'class="banner"' not in html
+
+
+def test_cli_learn_says_when_the_video_has_no_independent_motion(tmp_path, capsys):
+    from stickfigure.cli import main
+    from test_track import write_pan_then_arm
+
+    video = write_pan_then_arm(tmp_path / "pan.avi", pan_frames=40, arm_frames=0)
+    assert main(["learn", video, "-o", str(tmp_path / "o"), "-m", QUICK, "--quiet"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[-1].startswith("warning: no independent motion found")
+    assert "rigid scene seen by the moving camera" in lines[-1]
+    html = (tmp_path / "o" / "report.html").read_text(encoding="utf-8")
+    assert 'class="banner"' in html and "no independent motion found" in html.lower()

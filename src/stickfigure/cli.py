@@ -589,9 +589,18 @@ def _cmd_learn(args: argparse.Namespace) -> int:
         if Path(args.source).suffix.lower() not in VIDEO_SUFFIXES:
             raise ValueError("--roi and --track-option apply to video input only")
         kw["track_options"] = track_options
-    paths = learn(args.source, args.output, method=args.method, **kw, **params)
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", UserWarning)
+        paths = learn(args.source, args.output, method=args.method, **kw, **params)
     for what, path in paths.items():
         print(f"{what}: {path}")
+    for w in caught:  # e.g. no articulated motion in the video: said last, where a user looks
+        if issubclass(w.category, UserWarning):
+            print(f"warning: {w.message}")
+        else:
+            warnings.showwarning(w.message, w.category, w.filename, w.lineno)
     return 0
 
 

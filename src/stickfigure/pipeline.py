@@ -15,10 +15,14 @@ What :func:`learn` does, step by step
    of the frames they are fitted to, while tracks from a video start and end
    all the time. For tracked input (and any input with more than
    ``max_missing`` of its entries missing) :func:`stickfigure.track.best_window`
-   keeps the frame window and points holding the most observations: points
-   observed in at least 80% of the window, at most ``max_points`` of them
-   (spread over the image), windows of at most 400 frames that never cross a
-   shot cut. Other input is used whole (points never observed are dropped).
+   keeps, of each shot's best-covered window (points observed in at least
+   80% of it, windows of at most 400 frames), the one with the most points
+   moving on their own: where the camera moved, points that one rigid scene
+   explains (depth parallax included) are set aside. At most ``max_points``
+   points are kept, spread over the image. When no window has independent
+   motion the best-covered window is used; then, and when the moving points
+   move as one rigid body, a ``UserWarning`` says so (the report repeats it).
+   Other input is used whole (points never observed are dropped).
    What was fitted is written to ``points.npz`` (the model's input: same
    points and frames, so ``stickfigure report model.json points.npz`` works).
 4. **Fit** with :func:`stickfigure.fit` (``method``, ``random_state``,
@@ -34,6 +38,7 @@ import inspect
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -185,8 +190,17 @@ def learn(
     if tracked or traj.missing_fraction > max_missing:
         traj = best_window(traj, max_points=max_points, max_frames=400 if tracked else None)
         w = traj.meta["window"]
+        off = traj.meta.get("frame_offset", 0)
         _say(progress, f"learning from {w['points']} of {w['of_points']} points over frames "
-                       f"{traj.meta.get('frame_offset', 0)}-{traj.meta.get('frame_offset', 0) + traj.n_frames - 1}")
+                       f"{off}-{off + traj.n_frames - 1}")
+        for c in w.get("candidates", []) if len(w.get("candidates", [])) > 1 else []:
+            _say(progress, f"  frames {c['first']}-{c['last']}: {c['points']} points, {c['independent']} moving "
+                           f"independently of the scene/background{'  <- chosen' if c['chosen'] else ''}")
+        if w.get("verdict", "independent motion") != "independent motion":
+            # Said whether or not progress is shown: the skeleton is not a figure's.
+            warnings.warn(w["message"], UserWarning, stacklevel=2)
+        else:
+            _say(progress, w["message"])
     outdir.mkdir(parents=True, exist_ok=True)
     out["points"] = Path(sf.save(traj, outdir / "points.npz") or outdir / "points.npz")
 

@@ -41,11 +41,14 @@ an absolute number of frames). See ``docs/tracking.md``.
 Choosing what to learn from
 ---------------------------
 Skeleton methods need points that are observed over a good part of the frames
-they are fitted to. :func:`best_window` picks the frame window and the points
-that hold the most observations (points observed in at least ``coverage`` of the
-window, times the window's length), keeps at most ``max_points`` of them spread
-over the image, and never crosses a shot cut. :func:`stickfigure.pipeline.learn`
-uses it on tracked videos.
+they are fitted to, and that move relative to each other other than the way a
+camera moving through a rigid scene makes them. :func:`best_window` takes each
+shot's best-covered window (points observed in at least ``coverage`` of it),
+sets aside the points one rigid scene explains where the camera moved
+(``meta["camera"]``, recorded by :func:`track_video`), and keeps the window
+with the most points moving on their own; ``meta["window"]["verdict"]`` says
+when there are none, or when they move as one rigid body.
+:func:`stickfigure.pipeline.learn` uses it on tracked videos.
 """
 
 from __future__ import annotations
@@ -282,7 +285,10 @@ def track_video(
         rec_f: list[np.ndarray] = []  # per frame: frame index, track ids, positions
         rec_id: list[np.ndarray] = []
         rec_xy: list[np.ndarray] = []
-        steps: list[np.ndarray] = []  # (F-1) dominant similarity from frame f to f+1, 2x3
+        steps: list[np.ndarray] = []  # (F-1) dominant motion from frame f to f+1, 3x3
+        # Where the ROI's corners and centre go under each step: how far the camera moved.
+        probe = np.array([[rx, ry, 1.0], [rx + rw, ry, 1.0], [rx, ry + rh, 1.0], [rx + rw, ry + rh, 1.0],
+                          [rx + rw / 2, ry + rh / 2, 1.0]])
         shots = [0]
         ids = np.zeros(0, np.int64)
         pts = np.zeros((0, 2), np.float32)
@@ -379,6 +385,12 @@ def track_video(
 
     # Static test: cumulative residual after the dominant motion, per track.
     A = np.stack(steps) if steps else np.zeros((0, 3, 3))
+    camera_shift = np.zeros(F)
+    if steps:
+        moved = probe @ A.transpose(0, 2, 1)  # (F-1, 5, 3)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            d = np.linalg.norm(moved[..., :2] / moved[..., 2:] - probe[:, :2], axis=2).mean(axis=1)
+        camera_shift[1:] = np.where(np.isfinite(d), d, 0.0)
     if not stabilize:
         A = np.broadcast_to(np.eye(3), (F - 1, 3, 3))
     step_res = np.zeros_like(xy_obs)
@@ -420,6 +432,9 @@ def track_video(
         "track_start": first_frame.astype(np.int64),
         "track_shot": shot_of_frame[first_frame].astype(np.int64),
         "track_motion": extent[keep].astype(float),
+        # Camera motion per frame (pixels, mean over the ROI's corners and centre) from the previous
+        # frame, 0 where the camera was taken to be still and at cuts; video frames from first_frame.
+        "camera": {"first_frame": start, "shift_px": [round(float(v), 3) for v in camera_shift]},
         "tracker": {
             "max_points": max_points, "min_length_frames": int(min_len), "min_motion_px": float(motion_px),
             "min_distance_px": float(md), "quality": float(quality), "block_size": int(block_size),
@@ -570,23 +585,50 @@ def best_window(
     coverage: float = 0.8,
     min_points: int = 10,
     max_points: int | None = 150,
+    select: str = "motion",
+    scene_tolerance: float = 0.005,
+    random_state: Any = 0,
 ) -> Trajectories:
-    """Keep the frame window and points that hold the most observations.
+    """Choose the frame window and the points to learn a skeleton from.
 
-    For every window ``[a, b)`` (lengths from ``min_frames`` to ``max_frames``,
-    every start), the points observed in at least ``coverage`` of its frames
-    are counted; the window maximising ``min(n_points, max_points) * sqrt(length)``
-    wins (ties: the longer, then the earlier window). Points count more than
-    frames: a window twice as long must keep more than 71% of the points to
-    win. A skeleton needs its parts covered by points, while beyond a few dozen
-    frames of motion more frames add little (the papers' examples have 30 to
-    200 frames); with ``n * length`` the walking figure of a test video lost
-    half its limbs to a window four times longer. ``max_frames`` keeps a long video from
-    trading points for frames: a few hundred frames are plenty for every
-    method, while each extra point adds to the structure that can be learned. Windows never cross a shot cut
-    (``meta["shots"]``). If more than ``max_points`` points qualify, those
-    observed longest are kept, and among equally covered ones a spatially
-    spread subset (farthest-point sampling on their mean positions).
+    1. **Coverage, per shot.** For every window ``[a, b)`` (lengths from
+       ``min_frames`` to ``max_frames``, every start, never across a shot cut,
+       ``meta["shots"]``) the points observed in at least ``coverage`` of its
+       frames are counted; each shot's window maximising
+       ``min(n_points, max_points) * sqrt(length)`` is its candidate (ties: the
+       longer, then the earlier). Points count more than frames: a skeleton
+       needs its parts covered by points, while beyond a few dozen frames more
+       frames add little.
+    2. **Independent motion, per candidate.** Points only tell a skeleton
+       apart where they move relative to each other *other than the way a
+       camera moving through a rigid scene makes them*. Where the camera moved
+       during the window (``meta["camera"]``, written by :func:`track_video`:
+       the camera's travel exceeds the tracker's ``min_motion``), the rigid
+       scene is fitted: one rank-4 affine motion (a rigid 3D scene under an
+       affine camera, so depth parallax is explained) chosen by RANSAC over
+       the points, scored by how many cells of an 8 x 8 grid of the image its
+       inliers cover (the camera is what most of the *frame* follows). Points
+       it explains to within ``scene_tolerance`` (RMS over the window) are the
+       scene and are left out; the rest move independently. Where the camera
+       was still, the tracker's static test has already removed the
+       background, so every point counts.
+    3. **Choice.** With ``select="motion"`` the candidate with the most
+       independently moving points (``min(n, max_points) * sqrt(length)``,
+       at least ``min_points`` of them) wins, and only those points are kept.
+       If no candidate has ``min_points`` independently moving points, the
+       best-covered window is used and ``meta["window"]["verdict"]`` is
+       ``"no independent motion"``. ``select="coverage"`` always takes the
+       best-covered window with all its points (the choice before scene
+       fitting existed; also what data without camera information get).
+
+    The kept points are also tested for articulation: the share of them that
+    a single rigid motion of a plane (rank-3 affine subspace, tolerance half
+    ``scene_tolerance``) explains. At 80% or more the verdict is
+    ``"one rigid body"`` (e.g. a car driving past a still camera): nothing for
+    a skeleton to split. Otherwise it is ``"independent motion"``.
+    If more than ``max_points`` points qualify, those observed longest are
+    kept, and among equally covered ones a spatially spread subset
+    (farthest-point sampling on their mean positions).
 
     Parameters
     ----------
@@ -598,27 +640,46 @@ def best_window(
     coverage : float in (0, 1]
         Share of the window's frames a point must be observed in.
     min_points : int
-        Windows with fewer qualifying points are not considered (unless no
-        window has that many, then the best one is taken).
+        Windows with fewer qualifying (or, with ``select="motion"``,
+        independently moving) points are not chosen unless no window has that
+        many.
     max_points : int, optional
         Most points kept.
+    select : {"motion", "coverage"}
+        Rank candidate windows by independently moving points or by all points.
+    scene_tolerance : float
+        RMS distance within which the rigid scene explains a point: a fraction
+        of the image (or region of interest) diagonal (< 1; at least 1 px) or
+        pixels (>= 1).
+    random_state : None, int or Generator
+        Seed of the RANSAC sampling.
 
     Returns
     -------
     Trajectories
         ``traj.slice(frames=..., points=...)``; ``meta["window"]`` records the
-        choice (``start``, ``stop`` relative to ``traj``, points kept of how many).
-        Complete data come back whole.
+        choice: ``start``, ``stop`` (relative to ``traj``), ``points`` kept
+        of ``of_points``, ``coverage``, ``verdict``, ``message`` (one line
+        for a user), ``select`` and ``candidates`` (one dict per shot:
+        video frames ``first``/``last``, ``points``, ``scene_points``,
+        ``independent``, ``camera_px``, ``rigid_share``, ``score``,
+        ``chosen``). Complete data come back whole.
     """
+    from ._validation import check_random_state
+
     if not isinstance(traj, Trajectories):
         raise TypeError(f"traj must be a Trajectories, got {type(traj).__name__}")
     if not 0 < float(coverage) <= 1:
         raise ValueError(f"coverage must be in (0, 1], got {coverage!r}")
+    if select not in ("motion", "coverage"):
+        raise ValueError(f"select must be 'motion' or 'coverage', got {select!r}")
+    rng = check_random_state(random_state)
     P, F = traj.n_points, traj.n_frames
     obs = traj.observed
     Lmin = min(F, _min_length_frames(min_frames, F)) if float(min_frames) < 1 else min(F, int(min_frames))
     Lmin = max(Lmin, 2)
     Lmax = F if max_frames is None else max(Lmin, min(F, int(max_frames)))
+    cap = None if max_points is None else int(max_points)
     cs = np.zeros((P, F + 1), np.int32)
     np.cumsum(obs, axis=1, out=cs[:, 1:])
     # Shot starts are video frame numbers; make them relative to this (possibly sliced) trajectory.
@@ -626,14 +687,15 @@ def best_window(
     shots = np.asarray(traj.meta.get("shots", [offset]), np.int64) - offset
     shots = np.unique(np.r_[0, shots[(shots > 0) & (shots < F)]])
     shot_id = np.searchsorted(shots, np.arange(F), side="right") - 1
-    best = (-1.0, 0, 0, 0, 0)  # (score, length, -start, start, n)
-    best_any = best
+    S = shots.size
+    none = (-1.0, 0, 0, 0, 0)  # (score, length, -start, start, n)
+    best = [none] * S  # per shot, among windows with at least min_points points
+    best_any = [none] * S
 
-    def scan(lengths: np.ndarray) -> None:
-        nonlocal best, best_any
+    def scan(lengths: np.ndarray, wanted: np.ndarray) -> None:
         for L in lengths:
             a = np.arange(0, F - L + 1)
-            a = a[shot_id[a] == shot_id[a + L - 1]]
+            a = a[(shot_id[a] == shot_id[a + L - 1]) & wanted[shot_id[a]]]
             if not a.size:
                 continue
             need = int(np.ceil(coverage * L))
@@ -643,35 +705,264 @@ def best_window(
                 aa = a[c:c + 256]
                 n[c:c + 256] = ((cs[:, aa + L] - cs[:, aa]) >= need).sum(axis=0)
             # Points beyond max_points would not be kept: they add nothing to a window.
-            score = (n if max_points is None else np.minimum(n, int(max_points))) * np.sqrt(L)
-            i = int(np.argmax(score))  # first maximum: the earliest start
-            cand = (round(float(score[i]), 9), int(L), -int(a[i]), int(a[i]), int(n[i]))
-            if cand[:3] > best_any[:3]:
-                best_any = cand
-            if n[i] >= min_points and cand[:3] > best[:3]:
-                best = cand
+            score = (n if cap is None else np.minimum(n, cap)) * np.sqrt(L)
+            sid = shot_id[a]
+            for s in np.unique(sid):
+                idx = np.flatnonzero(sid == s)
+                i = idx[int(np.argmax(score[idx]))]  # first maximum: the earliest start
+                cand = (round(float(score[i]), 9), int(L), -int(a[i]), int(a[i]), int(n[i]))
+                if cand[:3] > best_any[s][:3]:
+                    best_any[s] = cand
+                if n[i] >= min_points and cand[:3] > best[s][:3]:
+                    best[s] = cand
 
-    # A geometric grid of lengths, then every length between the winner's grid neighbours.
+    # A geometric grid of lengths, then every length between each shot's winner's grid neighbours.
     grid = np.unique(np.round(np.geomspace(Lmin, Lmax, num=min(40, Lmax - Lmin + 1))).astype(int))
-    scan(grid)
-    for ref in {best[1], best_any[1]} - {0}:
-        k = int(np.searchsorted(grid, ref))
-        lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, grid.size - 1)]
-        scan(np.setdiff1d(np.arange(lo, hi + 1), grid))
-    if best[0] < 0:
-        best = best_any
-    if best[0] <= 0:
+    scan(grid, np.ones(S, bool))
+    extra: dict[int, set[int]] = {}
+    for s in range(S):
+        for ref in {best[s][1], best_any[s][1]} - {0}:
+            k = int(np.searchsorted(grid, ref))
+            lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, grid.size - 1)]
+            for L in np.setdiff1d(np.arange(lo, hi + 1), grid):
+                extra.setdefault(int(L), set()).add(s)
+    for L, ss in sorted(extra.items()):
+        wanted = np.zeros(S, bool)
+        wanted[list(ss)] = True
+        scan(np.array([L]), wanted)
+    cands = [best[s] if best[s][0] >= 0 else best_any[s] for s in range(S)]
+    cands = [(s, c) for s, c in enumerate(cands) if c[0] > 0]
+    if not cands:
         raise ValueError(f"no window of at least {Lmin} frames has a point observed in {coverage:.0%} of its frames")
-    _, L, _, a0, _ = best
-    win = obs[:, a0:a0 + L]
-    counts = win.sum(axis=1)
-    qual = np.flatnonzero(counts >= int(np.ceil(coverage * L)))
-    if max_points is not None and qual.size > int(max_points):
-        qual = _spread_subset(traj.xy[qual, a0:a0 + L], counts[qual], int(max_points), qual)
-    out = traj.slice(frames=slice(a0, a0 + L), points=np.sort(qual))
-    out.meta["window"] = {"start": a0, "stop": a0 + L, "points": int(qual.size), "of_points": P,
-                          "coverage": float(coverage)}
+
+    # Independent motion of each shot's candidate.
+    diag = _diagonal(traj)
+    tol = _relative(scene_tolerance, diag, "scene_tolerance")
+    tol = max(tol, 1.0) if traj.image_size is not None else max(tol, 1e-9)
+    cam = _camera_shift(traj)
+    travel_min = float(traj.meta.get("tracker", {}).get("min_motion_px", 0.01 * diag))
+    rows = []
+    for s, (score, L, _, a0, n) in cands:
+        need = int(np.ceil(coverage * L))
+        qual = np.flatnonzero((cs[:, a0 + L] - cs[:, a0]) >= need)
+        travel = None if cam is None else float(cam[a0 + 1:a0 + L].sum())
+        scene = np.zeros(qual.size, bool)
+        if travel is not None and travel >= travel_min and qual.size > 5 and traj.n_dims == 2:
+            res = _rigid_residuals(traj.xy[qual, a0:a0 + L], 4, tol, rng, cells=_cells(traj, qual, a0, L))
+            scene = res < tol
+        indep = qual[~scene]
+        rigid = None
+        if indep.size > 4 and traj.n_dims == 2:
+            res = _similarity_residuals(traj.xy[indep, a0:a0 + L], 0.5 * tol, rng)
+            rigid = float(np.mean(res < 0.5 * tol)) if np.isfinite(res).any() else None
+        m = indep.size if cap is None else min(indep.size, cap)
+        rows.append({"shot": s, "start": a0, "stop": a0 + L, "first": offset + a0, "last": offset + a0 + L - 1,
+                     "points": int(qual.size), "scene_points": int(scene.sum()), "independent": int(indep.size),
+                     "camera_px": None if travel is None else round(travel, 1),
+                     "rigid_share": None if rigid is None else round(rigid, 3),
+                     "coverage_score": round(float(score), 3), "score": round(float(m * np.sqrt(L)), 3),
+                     "chosen": False, "_qual": qual, "_indep": indep})
+
+    enough = min(int(min_points), P)
+    by_cov = max(rows, key=lambda r: (r["points"] >= enough, r["coverage_score"], r["stop"] - r["start"],
+                                      -r["start"]))
+    movers = [r for r in rows if r["independent"] >= enough]
+    if select == "coverage" or not movers:
+        pick = by_cov
+    else:
+        pick = max(movers, key=lambda r: (r["score"], r["stop"] - r["start"], -r["start"]))
+    pick["chosen"] = True
+    span = f"frames {pick['first']}-{pick['last']}"
+    if pick["independent"] < enough:
+        verdict = "no independent motion"
+        keep = pick["_qual"]
+        most = max(rows, key=lambda r: (r["independent"], -r["start"]))
+        message = (f"no independent motion found: no shot has {enough} tracked points that move on their own"
+                   + (f" (the most: {most['independent']}, frames {most['first']}-{most['last']})"
+                      if most["independent"] else "")
+                   + f"; the skeleton is learned from the best-covered window, {span}")
+        if pick["scene_points"]:
+            message += (f", where one rigid scene seen by the moving camera explains {pick['scene_points']} of its "
+                        f"{pick['points']} points, so its sticks divide that scene, not a figure")
+    else:
+        keep = pick["_indep"] if select == "motion" else pick["_qual"]
+        if pick["rigid_share"] is not None and pick["rigid_share"] >= 0.8:
+            verdict = "one rigid body"
+            message = (f"no articulated motion found: the {pick['independent']} moving points of {span} move as "
+                       f"one rigid body (one rigid motion explains {pick['rigid_share']:.0%} of them), so a "
+                       "skeleton has nothing to split")
+        else:
+            verdict = "independent motion"
+            where = "a rigid scene seen by the moving camera" if pick["scene_points"] else "the background"
+            message = (f"{pick['independent']} points of {span} move independently of {where}"
+                       + ("" if pick["rigid_share"] is None else
+                          f"; one rigid motion explains only {pick['rigid_share']:.0%} of them"))
+    a0, L = pick["start"], pick["stop"] - pick["start"]
+    counts = obs[keep, a0:a0 + L].sum(axis=1)
+    if cap is not None and keep.size > cap:
+        keep = _spread_subset(traj.xy[keep, a0:a0 + L], counts, cap, keep)
+    out = traj.slice(frames=slice(a0, a0 + L), points=np.sort(keep))
+    for r in rows:
+        del r["_qual"], r["_indep"]
+    out.meta["window"] = {"start": a0, "stop": a0 + L, "points": int(keep.size), "of_points": P,
+                          "coverage": float(coverage), "select": select, "verdict": verdict, "message": message,
+                          "scene_tolerance_px": round(float(tol), 3), "candidates": rows}
     return out
+
+
+def _diagonal(traj: Trajectories) -> float:
+    """Diagonal of the tracked region (ROI) or image in pixels; of the data's extent without an image."""
+    roi = traj.meta.get("roi")
+    if roi is not None and len(roi) == 4:
+        return float(np.hypot(roi[2], roi[3]))
+    if traj.image_size is not None:
+        return float(np.hypot(*traj.image_size))
+    flat = traj.xy.reshape(-1, traj.n_dims)
+    flat = flat[np.isfinite(flat).all(axis=1)]
+    return float(np.linalg.norm(np.ptp(flat, axis=0))) if len(flat) else 1.0
+
+
+def _camera_shift(traj: Trajectories) -> np.ndarray | None:
+    """Camera motion into each frame of ``traj`` (pixels), from ``meta["camera"]``; None when unknown."""
+    cam = traj.meta.get("camera")
+    if not isinstance(cam, dict) or "shift_px" not in cam:
+        return None
+    shift = np.asarray(cam["shift_px"], float)
+    first = int(traj.meta.get("frame_offset", 0)) - int(cam.get("first_frame", 0))
+    if first < 0 or first + traj.n_frames > shift.size:
+        return None
+    out = shift[first:first + traj.n_frames].copy()
+    out[0] = 0.0
+    return out
+
+
+def _cells(traj: Trajectories, points: np.ndarray, a0: int, L: int, grid: int = 8) -> np.ndarray:
+    """Cell of a ``grid`` x ``grid`` division of the region that each point's mean position falls in."""
+    mean = np.nanmean(traj.xy[points, a0:a0 + L], axis=1)
+    roi = traj.meta.get("roi")
+    if roi is not None and len(roi) == 4:
+        x0, y0, w, h = (float(v) for v in roi)
+    elif traj.image_size is not None:
+        x0, y0, (w, h) = 0.0, 0.0, traj.image_size
+    else:
+        x0, y0 = np.min(mean, axis=0)[:2]
+        w, h = np.ptp(mean[:, :2], axis=0) + 1e-9
+    cx = np.clip(((mean[:, 0] - x0) * grid / w).astype(int), 0, grid - 1)
+    cy = np.clip(((mean[:, 1] - y0) * grid / h).astype(int), 0, grid - 1)
+    return cy * grid + cx
+
+
+def _subspace_rms(B: np.ndarray, X: np.ndarray, M: np.ndarray, full: np.ndarray) -> np.ndarray:
+    """RMS distance (per observed frame) of each row of ``X`` from the column span of ``B``.
+
+    ``X`` (n, 2L) stacks x then y coordinates (0 where missing), ``M`` the
+    matching mask, ``full`` marks complete rows (projected with one QR; the
+    others by masked least squares).
+    """
+    n_obs = np.maximum(M.sum(axis=1) / 2, 1)
+    r2 = np.empty(X.shape[0])
+    Q, _ = np.linalg.qr(B)
+    Xf = X[full]
+    r2[full] = np.maximum((Xf ** 2).sum(axis=1) - ((Xf @ Q) ** 2).sum(axis=1), 0.0)
+    part = ~full
+    if part.any():
+        Bm = M[part, :, None] * Q[None]
+        G = np.einsum("nkr,nks->nrs", Bm, Bm) + 1e-9 * np.eye(Q.shape[1])
+        c = np.linalg.solve(G, np.einsum("nkr,nk->nr", Bm, X[part])[..., None])[..., 0]
+        r2[part] = (((X[part] - c @ Q.T) * M[part]) ** 2).sum(axis=1)
+    return np.sqrt(r2 / n_obs)
+
+
+def _similarity_residuals(xy: np.ndarray, tol: float, rng: np.random.Generator, *,
+                          n_hypotheses: int = 200) -> np.ndarray:
+    """RMS residual of each trajectory under the dominant 2D similarity motion, shape (n,).
+
+    One body moving in the image (turning, moving, nearing the camera) moves
+    its points by one similarity per frame, ``x_pf = s_f R_f c_p + t_f``.
+    Hypotheses come from two complete trajectories drawn at random (their
+    positions in the first frame fix the gauge, each frame's similarity is
+    the one taking them there); each point's ``c_p`` is its least-squares
+    position in that gauge. The hypothesis with most points within ``tol`` is
+    refitted to them (each frame's least-squares similarity) once. Unlike an
+    affine motion, a similarity cannot map two bodies moving apart.
+    """
+    n, L, _ = xy.shape
+    obs = np.isfinite(xy).all(axis=2)
+    z = np.where(obs, xy[..., 0] + 1j * xy[..., 1], 0)  # (n, L) complex positions
+    complete = np.flatnonzero(obs.all(axis=1))
+    if complete.size < 3:
+        return np.full(n, np.inf)
+
+    def residuals(m: np.ndarray, t: np.ndarray) -> np.ndarray:
+        # z_pf ~ m_f c_p + t_f with complex m (scale and rotation): c_p by least squares.
+        w = obs * np.abs(m) ** 2
+        c = (np.conj(m) * (z - t) * obs).sum(axis=1) / np.maximum(w.sum(axis=1), 1e-12)
+        r = np.abs(z - (m * c[:, None] + t)) ** 2 * obs
+        return np.sqrt(r.sum(axis=1) / np.maximum(obs.sum(axis=1), 1))
+
+    best, best_n = None, -1
+    for _ in range(int(n_hypotheses)):
+        p, q = rng.choice(complete, 2, replace=False)
+        d0 = z[q, 0] - z[p, 0]
+        if abs(d0) < 1e-6:
+            continue
+        m = (z[q] - z[p]) / d0
+        t = z[p] - m * z[p, 0]
+        res = residuals(m, t)
+        k = int((res < tol).sum())
+        if k > best_n:
+            best, best_n = res, k
+    if best is None:
+        return np.full(n, np.inf)
+    inl = np.flatnonzero((best < tol) & obs.all(axis=1))
+    if inl.size >= 3:  # each frame's least-squares similarity from the inliers' frame-0 positions
+        c = z[inl, 0]
+        cm, zm = c.mean(), z[inl].mean(axis=0)
+        m = (np.conj(c - cm)[:, None] * (z[inl] - zm)).sum(axis=0) / max((np.abs(c - cm) ** 2).sum(), 1e-12)
+        best = residuals(m, zm - m * cm)
+    return best
+
+
+def _rigid_residuals(xy: np.ndarray, rank: int, tol: float, rng: np.random.Generator, *,
+                     cells: np.ndarray | None = None, n_hypotheses: int = 200, max_frames: int = 60) -> np.ndarray:
+    """RMS residual of each trajectory under the dominant rigid motion, shape (n,).
+
+    Trajectories of one rigid body under an affine camera span a ``rank``-4
+    affine subspace (rank 4 for a 3D body, depth parallax included; rank 3 for
+    a plane moving in 2D). Hypotheses are the spans of ``rank`` complete
+    trajectories drawn at random (scored on at most ``max_frames`` evenly
+    spaced frames); the best, by the number of distinct ``cells`` holding an
+    inlier (within ``tol``) and then by the number of inliers, is refitted to
+    its complete inliers by SVD and applied to every trajectory over all frames.
+    """
+    n, L, _ = xy.shape
+    obs = np.isfinite(xy[..., 0])
+    X = np.concatenate([np.nan_to_num(xy[..., 0]), np.nan_to_num(xy[..., 1])], axis=1)
+    M = np.concatenate([obs, obs], axis=1).astype(float)
+    full = obs.all(axis=1)
+    complete = np.flatnonzero(full)
+    if complete.size < rank + 1:
+        return np.full(n, np.inf)
+    sub = np.unique(np.round(np.linspace(0, L - 1, min(L, max_frames))).astype(int))
+    cols = np.r_[sub, sub + L]
+    Xs, Ms, fulls = X[:, cols], M[:, cols], full
+    best_key, best_in = (-1, -1), None
+    for _ in range(int(n_hypotheses)):
+        s = rng.choice(complete, rank, replace=False)
+        inl = _subspace_rms(Xs[s].T, Xs, Ms, fulls) < tol
+        key = (int(np.unique(cells[inl]).size) if cells is not None else 0, int(inl.sum()))
+        if key > best_key:
+            best_key, best_in = key, inl
+    res = np.full(n, np.inf)
+    inl = best_in
+    for _ in range(2):  # refit to the complete inliers, then re-select them
+        use = np.flatnonzero(inl & full)
+        if use.size < rank:
+            break
+        U, _, _ = np.linalg.svd(X[use].T, full_matrices=False)
+        res = _subspace_rms(U[:, :rank], X, M, full)
+        inl = res < tol
+    return res
 
 
 def _spread_subset(xy: np.ndarray, counts: np.ndarray, k: int, index: np.ndarray) -> np.ndarray:

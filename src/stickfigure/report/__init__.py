@@ -125,8 +125,12 @@ def _overview(skeleton: Skeleton, traj: Trajectories, q: dict[str, Any]) -> str:
                                    f"elevation {fmt(pr.get('elevation'))}°"))
     if "window" in traj.meta:
         w = traj.meta["window"]
-        rows.append(("selection", f"the best-covered window: {w.get('points')} of {w.get('of_points')} tracks, "
-                                  f"each observed in ≥ {100 * w.get('coverage', 0):.0f}% of its frames"))
+        how = ("the shot window with the most independently moving points"
+               if w.get("select", "coverage") == "motion" and w.get("verdict") == "independent motion"
+               else "the best-covered window")
+        see = " (see “What it was learned from”)" if w.get("candidates") else ""
+        rows.append(("selection", f"{how}: {w.get('points')} of {w.get('of_points')} tracks, each observed in "
+                                  f"≥ {100 * w.get('coverage', 0):.0f}% of its frames{see}"))
     tr = traj.meta.get("tracking")
     if isinstance(tr, dict):
         rows.append(("tracking", f"{tr.get('detected')} features detected, {tr.get('kept')} tracks kept "
@@ -137,6 +141,49 @@ def _overview(skeleton: Skeleton, traj: Trajectories, q: dict[str, Any]) -> str:
         rows.append(("shot cuts", "the video cuts to another shot at frames " + ", ".join(str(s) for s in shots[1:])
                       + "; no track crosses a cut"))
     return kpis(items) + table(["input", ""], rows)
+
+
+def _sentence(text: Any) -> str:
+    text = str(text)
+    return text[:1].upper() + text[1:]
+
+
+def _banner(traj: Trajectories) -> str:
+    """A warning at the top of the page when the window holds no articulated motion."""
+    w = traj.meta.get("window")
+    if not isinstance(w, dict) or w.get("verdict", "independent motion") == "independent motion":
+        return ""
+    return (f'<div class="banner" role="alert"><strong>Not a figure\'s skeleton?</strong> '
+            f'{esc(_sentence(w.get("message", "")))}. Read the skeleton below with that in mind; to learn from another part '
+            'of the video, pass <code>--frames A:B</code> and/or <code>--roi X,Y,W,H</code>.</div>')
+
+
+def _selection(traj: Trajectories) -> str:
+    """Why this window: one row per shot's candidate window (see :func:`stickfigure.track.best_window`)."""
+    w = traj.meta.get("window")
+    if not isinstance(w, dict) or not w.get("candidates"):
+        return ""
+    rows = []
+    for c in w["candidates"]:
+        rows.append(["✔" if c.get("chosen") else "", f"{c['first']}–{c['last']}", c["points"],
+                     c.get("camera_px") if c.get("camera_px") is not None else "unknown",
+                     c["scene_points"], c["independent"],
+                     "" if c.get("rigid_share") is None else f"{100 * c['rigid_share']:.0f}%", c["score"]])
+    head = ["chosen", "frames", "points", "camera travel (px)", "rigid scene", "moving on their own",
+            "one rigid motion explains", "score"]
+    tol = w.get("scene_tolerance_px")
+    body = (f'<p>{esc(_sentence(w.get("message", "")))}.</p>'
+            + table(head, rows, numeric=[False, False, True, True, True, True, True, True])
+            + '<p class="note">One candidate per shot: the window whose points, each observed in at least '
+            f'{100 * w.get("coverage", 0):.0f}% of its frames, cover it best. Where the camera moved, one rigid '
+            'scene (a rank-4 affine motion: a 3D scene under an affine camera, depth parallax included) is fitted '
+            f'by RANSAC; the points it explains to within {fmt(tol)} px are the scene, not a figure. Where the '
+            'camera was still, the tracker has already removed the static background. The window with the most '
+            'points moving on their own (score: their number × √frames) is learned from, with only those '
+            'points. “One rigid motion explains” is the share of them one 2D similarity per frame (one body '
+            'turning, moving, nearing the camera) explains; '
+            'at 80% or more they move as one body and there is nothing for a skeleton to split.</p>')
+    return body
 
 
 def _player(skeleton: Skeleton, traj: Trajectories) -> str:
@@ -340,10 +387,11 @@ def render_report(skeleton: Skeleton, traj: Trajectories | np.ndarray, *, title:
             player = _data.player_data(skeleton, traj, max_frames=max_frames, pose=pz)
             structure, notes = _structure(skeleton, traj, player, pz)
             sections = [
-                ("overview", "Overview", _overview(skeleton, traj, q)),
+                ("overview", "Overview", _banner(traj) + _overview(skeleton, traj, q)),
                 ("animation", "The skeleton over the input", _player(skeleton, traj)
                  + ("" if player.get("backgrounds") or not traj.video else
                     f'<p class="warn">The video {esc(traj.video)} could not be read; the points are drawn alone.</p>')),
+                *([("selection", "What it was learned from", _selection(traj))] if _selection(traj) else []),
                 ("structure", "Structure", structure + "".join(f'<p class="warn">{esc(n)}</p>' for n in notes)),
                 ("diagnostics", f"How {skeleton.method} got there", _diagnostics(skeleton, traj)),
                 ("quality", "How well it fits", _quality(q)),
