@@ -18,6 +18,10 @@ multibody-sfm-hopkins
     estimated: misclassification and the count found (the checkerboard
     ``1R2RC`` and ``truck1`` are rigid scenes; the others are articulated or
     non-rigid and shown for reference).
+geometry-speed
+    The shared geometry's kernels at fixed sizes, where the tests used to time
+    them: the affine factorisation of one rigid body (50 points x 200 frames,
+    30% missing) and the local-subspace affinity of two bodies (50 x 200).
 load-real-data
     Every file in the data directory through ``stickfigure.load``: time,
     peak memory and what was read.
@@ -95,6 +99,18 @@ def _data_files(root: Path) -> list[Path]:
     return out
 
 
+def case_geometry_speed(ctx: Context) -> Iterator[dict[str, Any]]:
+    from stickfigure import geometry as g
+
+    tr = sf.synthetic.random_figure(n_sticks=1, frames=200, noise=0.01, seed=6, points_per_stick=50)
+    occ, _ = tr.missing_at_random(0.3, random_state=0)
+    _, timing = ctx.measure(lambda: g.affine_factorization(occ.xy, 3, random_state=0))
+    yield {"dataset": "1 body 50 x 200, 30% missing", "method": "affine_factorization", **timing}
+    bodies = sf.synthetic.rigid_bodies(2, frames=200, noise=0.005, seed=11, points_per_body=(25, 25))
+    _, timing = ctx.measure(lambda: g.local_subspace_affinity(bodies.xy))
+    yield {"dataset": "2 bodies 50 x 200", "method": "local_subspace_affinity", **timing}
+
+
 def case_load(ctx: Context) -> Iterator[dict[str, Any]]:
     assert ctx.data_dir is not None
     for path in _data_files(ctx.data_dir):
@@ -113,5 +129,6 @@ CASES = [
     Case("sfm-imputation", case_sfm_imputation),
     Case("multibody-sfm-rigid", case_multibody_rigid),
     Case("multibody-sfm-hopkins", case_multibody_hopkins, needs_data=True),
+    Case("geometry-speed", case_geometry_speed),
     Case("load-real-data", case_load, needs_data=True),
 ]

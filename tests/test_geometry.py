@@ -1,6 +1,5 @@
 """Shared geometry: known answers on synthetic rigid motion, invariances, and input errors."""
 
-import time
 
 import numpy as np
 import pytest
@@ -99,15 +98,13 @@ def test_wiberg_beats_bar_occlusion_and_heavy_missing_data():
     assert rmse < 3 * tr.meta["noise_std"]
 
 
-def test_factorization_is_deterministic_and_fast():
+def test_factorization_is_deterministic():
+    # speed is measured in benchmarks/bench_sfm.py, never asserted here (noisy machines)
     tr = sf.synthetic.random_figure(n_sticks=1, frames=200, noise=0.01, seed=6, points_per_stick=50)
     occ, _ = tr.missing_at_random(0.3, random_state=0)
-    t0 = time.perf_counter()
     a = g.affine_factorization(occ.xy, 3, random_state=0)
-    elapsed = time.perf_counter() - t0
     b = g.affine_factorization(occ.xy, 3, random_state=0)
     np.testing.assert_array_equal(a.motions, b.motions)
-    assert elapsed < 2.0  # typically ~0.1 s for P=50, F=200
 
 
 def test_factorization_log_likelihood_matches_gaussian_formula():
@@ -331,20 +328,17 @@ def test_local_subspace_affinity_matches_scipy_principal_angles():
         assert aff[i, j] == pytest.approx(expect, abs=1e-8)
 
 
-def test_local_subspace_affinity_separates_independent_bodies_and_is_fast():
+def test_local_subspace_affinity_separates_independent_bodies():
     a, *_ = rigid_scene(P=25, F=200, noise=0.005, seed=11)
     b, *_ = rigid_scene(P=25, F=200, noise=0.005, seed=12)
     xy = np.concatenate([a, b + 10.0])
-    t0 = time.perf_counter()
     aff = g.local_subspace_affinity(xy)
-    elapsed = time.perf_counter() - t0
     assert aff.shape == (50, 50)
     np.testing.assert_allclose(aff, aff.T)
     np.testing.assert_allclose(np.diag(aff), 1.0)
     assert np.all((aff > 0) & (aff <= 1))
     within = np.r_[aff[:25, :25].ravel(), aff[25:, 25:].ravel()]
     assert np.median(within) > 2 * np.median(aff[:25, 25:])
-    assert elapsed < 1.0
 
 
 def test_local_subspace_affinity_handles_missing_data():
