@@ -25,7 +25,7 @@ from ..._validation import check_labels, check_positive
 from ...skeleton import Skeleton
 from ...trajectories import Trajectories
 from ..base import StickEstimator, register
-from .initialise import initial_state
+from .initialise import initial_state, interpolate_rotations
 from .model import Observations, Priors, StickState, chain_degree, normalise
 from .structure import EMSettings, Stage, learn_structure, stick_edges
 from .updates import complete_rotation, update_endpoints
@@ -326,38 +326,6 @@ def _skeleton(stages: list[Stage], selected: int, norm: tuple[np.ndarray, float]
                     info=info)
 
 
-def _interpolate_rotations(R: np.ndarray, good: np.ndarray) -> np.ndarray:
-    """Rotations (F, D, 3) kept where ``good``, spherically interpolated in between (held at the ends)."""
-    from .updates import quat_to_rot, rot_to_quat
-
-    F, D, _ = R.shape
-    gi = np.flatnonzero(good)
-    if gi.size == F:
-        return R
-    q = rot_to_quat(complete_rotation(R[gi]))
-    # Consecutive quaternions on the same hemisphere (q and -q are the same rotation).
-    flip = np.ones(gi.size)
-    flip[1:] = np.sign(np.sum(q[1:] * q[:-1], axis=1) + 1e-300)
-    q = q * np.cumprod(flip)[:, None]
-    f = np.arange(F)
-    i1 = np.clip(np.searchsorted(gi, f), 0, gi.size - 1)
-    i0 = np.clip(i1 - 1, 0, gi.size - 1)
-    i0 = np.where(gi[i1] == f, i1, i0)
-    g0, g1 = gi[i0], gi[i1]
-    w = np.where(g1 > g0, (f - g0) / np.maximum(g1 - g0, 1), 0.0)
-    w = np.where(f >= gi[-1], 0.0, w)
-    q0, q1 = q[i0], q[np.where(f >= gi[-1], i0, i1)]
-    dot = np.clip(np.sum(q0 * q1, axis=1), -1.0, 1.0)
-    th = np.arccos(dot)
-    sth = np.sin(th)
-    small = sth < 1e-8
-    a = np.where(small, 1.0 - w, np.sin((1.0 - w) * th) / np.where(small, 1.0, sth))
-    b = np.where(small, w, np.sin(w * th) / np.where(small, 1.0, sth))
-    qi = a[:, None] * q0 + b[:, None] * q1
-    qi /= np.linalg.norm(qi, axis=1, keepdims=True)
-    return quat_to_rot(qi)[:, :D, :]
-
-
 def _impute_state(skeleton: Skeleton, traj: Trajectories) -> tuple[StickState, Observations, tuple]:
     """A state for new frames: fixed L, K, G, R; motions by Procrustes; vertices from endpoints."""
     from ...geometry import orthogonal_procrustes_rows
@@ -395,7 +363,7 @@ def _impute_state(skeleton: Skeleton, traj: Trajectories) -> tuple[StickState, O
         A = (w - abar[..., None]) * m[:, None, :]
         B = (local[idx].T[None] - lbar[..., None]) * m[:, None, :]
         R = orthogonal_procrustes_rows(A, B)
-        R = _interpolate_rotations(R, good)
+        R = interpolate_rotations(R, good)
         t = abar - np.einsum("fdk,fk->fd", R, lbar)
         seen = cnt > 0
         if not seen.all():  # no visible point: translation interpolated between frames that have one
