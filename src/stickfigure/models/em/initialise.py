@@ -63,35 +63,18 @@ def fill_gaps(xy: np.ndarray, *, ends: bool = True) -> np.ndarray:
 
 
 def interpolate_rotations(R: np.ndarray, good: np.ndarray) -> np.ndarray:
-    """Rotations (F, D, 3) kept where ``good``, spherically interpolated in between (held at the ends)."""
-    from .updates import complete_rotation, quat_to_rot, rot_to_quat
+    """Rotations (F, D, 3) kept where ``good``, spherically interpolated in between (held at the ends).
+
+    (Frames after the last good one take its rotation; the copy this replaces gave
+    them the rotation of the last but one.)
+    """
+    from .updates import complete_rotation, quat_to_rot, rot_to_quat, slerp_fill
 
     F, D, _ = R.shape
-    gi = np.flatnonzero(good)
-    if gi.size == F or gi.size == 0:
+    if good.all() or not good.any():
         return R
-    q = rot_to_quat(complete_rotation(R[gi]))
-    # Consecutive quaternions on the same hemisphere (q and -q are the same rotation).
-    flip = np.ones(gi.size)
-    flip[1:] = np.sign(np.sum(q[1:] * q[:-1], axis=1) + 1e-300)
-    q = q * np.cumprod(flip)[:, None]
-    f = np.arange(F)
-    i1 = np.clip(np.searchsorted(gi, f), 0, gi.size - 1)
-    i0 = np.clip(i1 - 1, 0, gi.size - 1)
-    i0 = np.where(gi[i1] == f, i1, i0)
-    g0, g1 = gi[i0], gi[i1]
-    w = np.where(g1 > g0, (f - g0) / np.maximum(g1 - g0, 1), 0.0)
-    w = np.where(f >= gi[-1], 0.0, w)
-    q0, q1 = q[i0], q[np.where(f >= gi[-1], i0, i1)]
-    dot = np.clip(np.sum(q0 * q1, axis=1), -1.0, 1.0)
-    th = np.arccos(dot)
-    sth = np.sin(th)
-    small = sth < 1e-8
-    a = np.where(small, 1.0 - w, np.sin((1.0 - w) * th) / np.where(small, 1.0, sth))
-    b = np.where(small, w, np.sin(w * th) / np.where(small, 1.0, sth))
-    qi = a[:, None] * q0 + b[:, None] * q1
-    qi /= np.linalg.norm(qi, axis=1, keepdims=True)
-    return quat_to_rot(qi)[:, :D, :]
+    q = rot_to_quat(complete_rotation(R))
+    return quat_to_rot(slerp_fill(q, good))[:, :D, :]
 
 
 def _translations(w: np.ndarray, m: np.ndarray, R: np.ndarray, local: np.ndarray) -> np.ndarray:
