@@ -25,7 +25,7 @@ from ..._validation import check_labels, check_positive
 from ...skeleton import Skeleton
 from ...trajectories import Trajectories
 from ..base import StickEstimator, register
-from .initialise import initial_state, interpolate_rotations
+from .initialise import fill_gaps, initial_state, interpolate_rotations
 from .model import Observations, Priors, StickState, chain_degree, normalise
 from .structure import EMSettings, Stage, learn_structure, stick_edges
 from .updates import complete_rotation, update_endpoints
@@ -248,7 +248,12 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
         from ...segmentation import affinity_propagation_segments
 
         ms = max_sticks if max_sticks is not None else int(max(2, min(20, P // 3)))
-        labels, ap = affinity_propagation_segments(traj.xy, max_segments=ms, random_state=rng, return_info=True)
+        # The grouping sees the gaps between two observations of a point filled by interpolation
+        # in time: its rigid-subspace affinity completes gaps by a low-rank fit, which with sparse
+        # observations (75% withheld) merges the whole scene into one or two groups. The EM
+        # itself sees the observations only.
+        xy = traj.xy if traj.observed.all() else fill_gaps(traj.xy, ends=False)
+        labels, ap = affinity_propagation_segments(xy, max_segments=ms, random_state=rng, return_info=True)
         info0["initial_clustering"] = {k: v for k, v in ap.items() if isinstance(v, (int, float, str, type(None)))}
     else:
         labels = check_labels(labels, P, "labels")
