@@ -51,8 +51,8 @@ def noise_variance(st: StickState, obs: Observations) -> tuple[np.ndarray, float
     """Per-stick residual sums of squares (S,) and a robust noise variance per coordinate.
 
     Each stick's variance is corrected for the degrees of freedom its fit used
-    (``3 + D`` motion parameters per frame it is seen in, 3 local coordinates per
-    point), so sticks with few points do not look less noisy than they are; the
+    (``3 + D`` motion parameters per frame it is seen in, or the frame's coordinates
+    where it shows fewer, 3 local coordinates per point), so sticks with few points do not look less noisy than they are; the
     noise variance is the lower quartile over sticks, so up to three quarters of
     the sticks may be bad without inflating it.
     """
@@ -60,8 +60,10 @@ def noise_variance(st: StickState, obs: Observations) -> tuple[np.ndarray, float
     rss = des.residual_sq(st.rot, st.trans, st.local)
     D = obs.n_dims
     n = des.n.sum(axis=1) * D
-    seen = (des.n > 0).sum(axis=1)
-    dof = n - seen * (3 + D) - 3 * np.bincount(st.labels, minlength=st.n_sticks)
+    # A frame's motion absorbs at most the coordinates the stick shows there (with missing data
+    # most frames may show one or two points; charging 3 + D each left no degrees of freedom).
+    used = np.minimum(D * des.n, 3 + D).sum(axis=1)
+    dof = n - used - 3 * np.bincount(st.labels, minlength=st.n_sticks)
     ok = dof > 0
     var = float(np.quantile(rss[ok] / dof[ok], 0.25)) if ok.any() else float(rss.sum() / max(n.sum(), 1))
     return rss, max(var, 1e-300)
