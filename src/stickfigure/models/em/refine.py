@@ -51,8 +51,8 @@ def noise_variance(st: StickState, obs: Observations) -> tuple[np.ndarray, float
     """Per-stick residual sums of squares (S,) and a robust noise variance per coordinate.
 
     Each stick's variance is corrected for the degrees of freedom its fit used
-    (``3 + D`` motion parameters per frame it is seen in, or the frame's coordinates
-    where it shows fewer, 3 local coordinates per point), so sticks with few points do not look less noisy than they are; the
+    (``3 + D`` motion parameters per frame it is seen in, 3 local coordinates per
+    point), so sticks with few points do not look less noisy than they are; the
     noise variance is the lower quartile over sticks, so up to three quarters of
     the sticks may be bad without inflating it.
     """
@@ -60,10 +60,8 @@ def noise_variance(st: StickState, obs: Observations) -> tuple[np.ndarray, float
     rss = des.residual_sq(st.rot, st.trans, st.local)
     D = obs.n_dims
     n = des.n.sum(axis=1) * D
-    # A frame's motion absorbs at most the coordinates the stick shows there (with missing data
-    # most frames may show one or two points; charging 3 + D each left no degrees of freedom).
-    used = np.minimum(D * des.n, 3 + D).sum(axis=1)
-    dof = n - used - 3 * np.bincount(st.labels, minlength=st.n_sticks)
+    seen = (des.n > 0).sum(axis=1)
+    dof = n - seen * (3 + D) - 3 * np.bincount(st.labels, minlength=st.n_sticks)
     ok = dof > 0
     var = float(np.quantile(rss[ok] / dof[ok], 0.25)) if ok.any() else float(rss.sum() / max(n.sum(), 1))
     return rss, max(var, 1e-300)
@@ -102,8 +100,12 @@ def join_candidates(st: StickState, obs: Observations, priors: Priors) -> list[t
     Joining b into a costs ``sum_{p in b} (|w_p - R_a l_pa - t_a|^2) - RSS_b`` with each
     point's coordinates refitted on a (:func:`assign.candidate_fits`, the same fit the
     resampling uses), i.e. a's motion has to explain b's points too; the pair is
-    joined when the cheaper direction loses less than ``F (3 + D) / 2 log N`` (in units
-    of ``2 sigma^2``), the motion parameters the join saves.
+    joined when the cheaper direction loses less than the BIC charge of the motion
+    parameters the join saves (in units of ``2 sigma^2``): in each frame b shows
+    ``n_bf`` points its motion has ``min(3 + D, D n_bf)`` parameters the data fix, each
+    charged ``log(D n_bf)``, the log of the observations that determine it (as for the
+    articulated splits; ``F (3 + D) / 2 log N`` before, which with sparse data exceeded
+    all the evidence a stick has and joined articulated neighbours).
     """
     from .assign import candidate_fits
 
@@ -111,16 +113,16 @@ def join_candidates(st: StickState, obs: Observations, priors: Priors) -> list[t
     if S < 2:
         return []
     rss, var = noise_variance(st, obs)
-    N = float(obs.mask.sum() * obs.n_dims)
-    F, D = obs.n_frames, obs.n_dims
-    penalty = 0.5 * F * (3 + D) * np.log(N)
+    D = obs.n_dims
+    coords = D * st.design(obs).n  # (S, F)
+    saved = 0.5 * np.sum(np.minimum(3 + D, coords) * np.log(np.maximum(coords, 1.0)), axis=1)  # (S,)
     _, sq = candidate_fits(st, obs, priors)  # (P, S)
     moved = np.zeros((S, S))  # moved[b, a] = RSS of b's points on a
     np.add.at(moved, st.labels, sq)
-    loss = (moved - rss[:, None]) / (2.0 * var)
-    loss = np.minimum(loss, loss.T)
-    np.fill_diagonal(loss, np.inf)
-    found = [(float(loss[a, b]), (a, b)) for a in range(S) for b in range(a + 1, S) if loss[a, b] < penalty]
+    excess = (moved - rss[:, None]) / (2.0 * var) - saved[:, None]  # b into a, net of b's saved charge
+    excess = np.minimum(excess, excess.T)
+    np.fill_diagonal(excess, np.inf)
+    found = [(float(excess[a, b]), (a, b)) for a in range(S) for b in range(a + 1, S) if excess[a, b] < 0]
     used: set[int] = set()
     out = []
     for _, (a, b) in sorted(found):
