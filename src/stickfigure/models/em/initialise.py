@@ -131,18 +131,46 @@ def _rigid_sfm(pts: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, n
         fac = affine_factorization(pts, rank=3, random_state=rng)
         R, _, t, shape = metric_upgrade(fac.motions, fac.shape)
         return R, t, shape
+    filled = fill_gaps(pts)
     if good.sum() >= max(3, 0.5 * F) and obs[:, good].any(axis=1).all():
         fac = affine_factorization(pts[:, good], rank=3, random_state=rng)
-        Rg, _, _, shape = metric_upgrade(fac.motions, fac.shape)
+        Rg, _, _, local = metric_upgrade(fac.motions, fac.shape)
         R = np.zeros((F, D, 3))
         R[good] = Rg
         R = interpolate_rotations(R, good)
-        return R, _translations(w, m, R, shape), shape
-    filled = fill_gaps(pts)
-    fac = affine_factorization(filled, rank=3, random_state=rng)
-    R, _, t, _ = metric_upgrade(fac.motions, fac.shape)
-    local = _fit_local(w, m, R, t)
+    else:
+        fac = affine_factorization(filled, rank=3, random_state=rng)
+        R, _, t, _ = metric_upgrade(fac.motions, fac.shape)
+        local = _fit_local(w, m, R, t)
+    local = _bound_spread(local, filled)
     return R, _translations(w, m, R, local), local
+
+
+#: A group's 3D principal spreads are capped at this multiple of its largest 2D spread over frames.
+MAX_DEPTH_RATIO = 2.0
+
+
+def _bound_spread(local: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Local shape (n, 3) with every principal spread at most ``MAX_DEPTH_RATIO`` times the
+    largest RMS radius the group shows in any frame of ``xy`` (n, F, D), complete.
+
+    A rigid body's spread along an axis is at most its 2D RMS radius in a frame where that
+    axis lies in the image plane; a spread far beyond every frame's radius is one the
+    motion never revealed. With sparse data the metric upgrade can return such axes
+    hundreds of scene sizes long (a near-singular metric matrix), and a stick that long
+    fits its projections by foreshortening, so EM keeps it: the cap keeps the start in
+    the region of real shapes (on complete data it does not bind).
+    """
+    c = local.mean(axis=0)
+    X = local - c
+    lam, V = np.linalg.eigh(X.T @ X / max(local.shape[0], 1))
+    spread = np.sqrt(np.maximum(lam, 0.0))
+    r2 = np.sqrt(np.max(np.mean(np.sum((xy - xy.mean(axis=0)) ** 2, axis=-1), axis=0)))
+    cap = MAX_DEPTH_RATIO * r2
+    if not np.isfinite(cap) or np.all(spread <= cap):
+        return local
+    f = np.where(spread > cap, cap / np.maximum(spread, 1e-300), 1.0)
+    return c + X @ V @ np.diag(f) @ V.T
 
 
 def stick_sfm(obs: Observations, labels: np.ndarray, n_sticks: int, rng: np.random.Generator
