@@ -228,9 +228,13 @@ class EMSkeleton(StickEstimator):
         # With fewer than 3 visible points (plus its endpoints) a frame leaves the stick's rotation
         # open (a turn about the line through two points, a mirror): keep the interpolated one there.
         hold = state.design(obs).n < 3
-        for _ in range(n_iter):
+        # Every resample_every sweeps (not in the last ones) the multi-start rotation search of
+        # training: a rotation fitted to a few nearly coplanar points can sit in the mirror
+        # branch, and the joints (endpoint terms) tell the branches apart.
+        every = max(int(settings.resample_every), 1) if settings.resample_every else 10
+        for it in range(n_iter):
             em_sweep(state, obs, priors, precisions=False, local=False, n_procrustes=settings.n_procrustes,
-                     hold=hold)
+                     hold=hold, global_rotations=it % every == 0 and it < n_iter - every)
         centre, scale = norm
         return state.point_predictions() * scale + centre
 
@@ -245,15 +249,8 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
     P = traj.n_points
     info0: dict[str, Any] = {}
     if labels is None:
-        from ...segmentation import affinity_propagation_segments
-
         ms = max_sticks if max_sticks is not None else int(max(2, min(20, P // 3)))
-        # The grouping sees the gaps between two observations of a point filled by interpolation
-        # in time: its rigid-subspace affinity completes gaps by a low-rank fit, which with sparse
-        # observations (75% withheld) merges the whole scene into one or two groups. The EM
-        # itself sees the observations only.
-        xy = traj.xy if traj.observed.all() else fill_gaps(traj.xy, ends=False)
-        labels, ap = affinity_propagation_segments(xy, max_segments=ms, random_state=rng, return_info=True)
+        labels, ap = _initial_groups(traj, ms, rng)
         info0["initial_clustering"] = {k: v for k, v in ap.items() if isinstance(v, (int, float, str, type(None)))}
     else:
         labels = check_labels(labels, P, "labels")
@@ -284,6 +281,62 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
     info0["settings"] = asdict(settings)
     info0["priors"] = asdict(priors)
     return stages, selected, (centre, scale), info0
+
+
+def _rigid_bic_terms(xy: np.ndarray, labels: np.ndarray) -> tuple[float, float, float]:
+    """RSS of every group's own affine rank-3 fit to its *observed* entries, its parameter
+    count (per frame at most the coordinates the group shows there) and N."""
+    from ...geometry import affine_factorization
+
+    obs = ~np.isnan(xy[..., 0])
+    D = xy.shape[2]
+    rss = k = 0.0
+    for c in np.unique(labels):
+        idx = np.flatnonzero(labels == c)
+        seen = obs[idx].sum(axis=0)
+        k += float(np.minimum(D * 4, D * seen).sum()) + 3.0 * idx.size
+        if idx.size > 4:
+            fac = affine_factorization(xy[idx], rank=3, random_state=0)
+            rss += fac.rms ** 2 * fac.n_observed * D
+    return rss, k, float(obs.sum() * D)
+
+
+def _initial_groups(traj: Trajectories, max_segments: int, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
+    """Affinity Propagation groups; with missing data also from the gap-interpolated trajectories.
+
+    The rigid-subspace affinity completes gaps by a low-rank fit, which with sparse
+    observations (75% withheld) merges the whole scene into one or two groups; with
+    every point's interior gaps filled by linear interpolation in time
+    (:func:`initialise.fill_gaps`) the groups come out right far more often, but over a
+    long gap (an occluder) interpolation bends the trajectory and can mix parts. So
+    where at least half of the entries are observed both groupings are made and the
+    one with the lower BIC of per-group affine fits to the observed entries is kept
+    (with sparse data those fits are undetermined; the interpolated grouping is used).
+    The EM itself sees the observations only.
+    """
+    from ...segmentation import affinity_propagation_segments
+
+    if traj.observed.all():
+        return affinity_propagation_segments(traj.xy, max_segments=max_segments, random_state=rng,
+                                             return_info=True)
+    seed = int(rng.integers(2**31 - 1))
+    filled = fill_gaps(traj.xy, ends=False)
+    lab_f, info_f = affinity_propagation_segments(filled, max_segments=max_segments, random_state=seed,
+                                                  return_info=True)
+    info_f = {**info_f, "input": "gaps interpolated"}
+    if traj.observed.mean() < 0.5:
+        return lab_f, info_f
+    lab_r, info_r = affinity_propagation_segments(traj.xy, max_segments=max_segments, random_state=seed,
+                                                  return_info=True)
+    if np.array_equal(lab_r, lab_f):
+        return lab_f, info_f
+    terms = [_rigid_bic_terms(traj.xy, lab) for lab in (lab_f, lab_r)]
+    N = terms[0][2]
+    sig2 = min(r / max(N - k, 1.0) for r, k, _ in terms)
+    bic = [r / (2.0 * max(sig2, 1e-300)) + 0.5 * k * np.log(N) for r, k, _ in terms]
+    if bic[1] < bic[0]:
+        return lab_r, {**info_r, "input": "gaps as given"}
+    return lab_f, info_f
 
 
 def _skeleton(stages: list[Stage], selected: int, norm: tuple[np.ndarray, float], info0: dict[str, Any],
