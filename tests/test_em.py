@@ -239,3 +239,35 @@ def test_sparse_training_keeps_the_groups(chain):
     rms = np.sqrt(np.nanmean(np.sum((sk.predict() - chain.xy) ** 2, axis=-1)))  # hidden entries too
     spread = np.sqrt(np.mean(np.sum((chain.xy - np.nanmean(chain.xy, axis=(0, 1))) ** 2, axis=-1)))
     assert rms < 0.1 * spread
+
+
+def _imputation_rmse(method: str, train: sf.Trajectories, test: sf.Trajectories, seed: int) -> tuple[float, sf.Skeleton]:
+    from stickfigure.models import get_method
+
+    occluded, hidden = sf.synthetic.occlude(test, seed=seed)
+    sk = sf.fit(train, method=method, random_state=seed)
+    filled = np.asarray(get_method(method).impute_skeleton(sk, occluded))
+    d = filled[hidden] - test.xy[hidden]
+    return float(np.sqrt(np.mean(np.sum(d * d, axis=-1)))), sk
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("condition", ["occluded", "75% withheld"])
+def test_training_with_missing_data_recovers_structure_and_imputes(condition):
+    """Ross et al.'s robustness claim: trained on occluded or sparse data (75% of the
+    observations withheld), the figure's structure is recovered and the held-out
+    occluded entries are imputed better than by multibody SfM."""
+    traj = sf.synthetic.random_figure(n_sticks=4, frames=120, noise=0.01, seed=11, points_per_stick=(5, 9))
+    train, test = traj.split(0.7)
+    rng = np.random.default_rng(5)
+    if condition == "occluded":
+        train, _ = sf.synthetic.occlude(train, seed=6)
+    else:
+        hide = rng.random(train.xy.shape[:2]) < 0.75
+        hide[np.arange(train.n_points), rng.integers(0, train.n_frames, train.n_points)] = False
+        train = train.with_xy(np.where(hide[..., None], np.nan, train.xy), allow_unobserved=False)
+    em, sk = _imputation_rmse("em", train, test, seed=3)
+    mb, _ = _imputation_rmse("multibody-sfm", train, test, seed=3)
+    assert adjusted_rand_score(traj.labels_true, sk.labels) > 0.9
+    assert _edges(sk, traj) == _true_edges(traj)
+    assert em < 0.7 * mb
