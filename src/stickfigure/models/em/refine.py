@@ -27,7 +27,7 @@ import numpy as np
 
 from .initialise import initial_state
 from .model import Observations, Priors, StickState
-from .updates import em_sweep
+from .updates import MIN_ROTATION_POINTS, em_sweep
 
 __all__ = ["noise_variance", "split_candidates", "join_candidates", "refine_labels"]
 
@@ -100,12 +100,13 @@ def join_candidates(st: StickState, obs: Observations, priors: Priors) -> list[t
     Joining b into a costs ``sum_{p in b} (|w_p - R_a l_pa - t_a|^2) - RSS_b`` with each
     point's coordinates refitted on a (:func:`assign.candidate_fits`, the same fit the
     resampling uses), i.e. a's motion has to explain b's points too; the pair is
-    joined when the cheaper direction loses less than the BIC charge of the motion
-    parameters the join saves (in units of ``2 sigma^2``): in each frame b shows
-    ``n_bf`` points its motion has ``min(3 + D, D n_bf)`` parameters the data fix, each
-    charged ``log(D n_bf)``, the log of the observations that determine it (as for the
-    articulated splits; ``F (3 + D) / 2 log N`` before, which with sparse data exceeded
-    all the evidence a stick has and joined articulated neighbours).
+    joined when the cheaper direction loses less than the BIC charge ``k_b / 2 log N``
+    (in units of ``2 sigma^2``) of the motion parameters the join saves: D translations in
+    every frame where b shows a point, and 3 rotation angles only where it shows at least
+    ``MIN_ROTATION_POINTS`` (elsewhere its rotation is interpolated, not a free parameter;
+    see :func:`updates.update_motions`). On complete data that is the former
+    ``F (3 + D)``; with 75% of the observations withheld the former charge exceeded all
+    the evidence a stick has and joined articulated neighbours.
     """
     from .assign import candidate_fits
 
@@ -114,8 +115,9 @@ def join_candidates(st: StickState, obs: Observations, priors: Priors) -> list[t
         return []
     rss, var = noise_variance(st, obs)
     D = obs.n_dims
-    coords = D * st.design(obs).n  # (S, F)
-    saved = 0.5 * np.sum(np.minimum(3 + D, coords) * np.log(np.maximum(coords, 1.0)), axis=1)  # (S,)
+    N = float(obs.mask.sum() * D)
+    n = st.design(obs).n  # (S, F)
+    saved = 0.5 * np.log(N) * np.sum(D * (n >= 1) + 3 * (n >= MIN_ROTATION_POINTS), axis=1)  # (S,)
     _, sq = candidate_fits(st, obs, priors)  # (P, S)
     moved = np.zeros((S, S))  # moved[b, a] = RSS of b's points on a
     np.add.at(moved, st.labels, sq)
