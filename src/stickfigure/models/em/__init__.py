@@ -121,7 +121,7 @@ class EMSkeleton(StickEstimator):
                  max_merges: int | None = None, merge_baseline: bool = True, n_polish: int = 3,
                  reuse_scores: bool = True, tol: float = 1e-4, min_stick_points: int = 3,
                  max_sticks: int | None = None, labels: Any = None, refine_sticks: bool = True,
-                 articulated_rounds: int = 4, tau_p: float = 1.0,
+                 articulated_rounds: int = 4, tau_p: float = 25.0,
                  alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e10, impute_iter: int = 100,
                  random_state: Any = None, progress: bool = False) -> None:
         self.n_iter = n_iter
@@ -306,8 +306,9 @@ def _initial_groups(traj: Trajectories, max_segments: int, rng: np.random.Genera
 
     The rigid-subspace affinity completes gaps by a low-rank fit, which with sparse
     observations (75% withheld) merges the whole scene into one or two groups; with
-    every point's interior gaps filled by linear interpolation in time
-    (:func:`initialise.fill_gaps`) the groups come out right far more often, but over a
+    every point's gaps filled by linear interpolation in time (held at the nearest
+    observation before the first and after the last, :func:`initialise.fill_gaps`) the
+    groups come out right far more often, but over a
     long gap (an occluder) interpolation bends the trajectory and can mix parts. So
     where at least half of the entries are observed both groupings are made and the
     one with the lower BIC of per-group affine fits to the observed entries is kept
@@ -320,7 +321,7 @@ def _initial_groups(traj: Trajectories, max_segments: int, rng: np.random.Genera
         return affinity_propagation_segments(traj.xy, max_segments=max_segments, random_state=rng,
                                              return_info=True)
     seed = int(rng.integers(2**31 - 1))
-    filled = fill_gaps(traj.xy, ends=False)
+    filled = fill_gaps(traj.xy)
     lab_f, info_f = affinity_propagation_segments(filled, max_segments=max_segments, random_state=seed,
                                                   return_info=True)
     info_f = {**info_f, "input": "gaps interpolated"}
