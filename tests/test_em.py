@@ -212,6 +212,22 @@ def test_stick_sfm_leaves_missing_entries_out(pattern):
         assert np.sqrt(np.mean(d2[hide])) < 0.2  # was 0.85
 
 
+def test_start_spread_is_capped_by_the_largest_2d_radius():
+    """A start axis far longer than anything the projections ever show is shrunk to 2x their radius."""
+    from stickfigure.models.em.initialise import MAX_DEPTH_RATIO, _bound_spread
+
+    xy = _rigid_body(8, 40, seed=1)
+    r2 = np.sqrt(np.max(np.mean(np.sum((xy - xy.mean(axis=0)) ** 2, axis=-1), axis=0)))
+    rng = np.random.default_rng(0)
+    shape = rng.normal(size=(8, 3)) * np.array([0.3, 0.2, 190.0])  # a near-singular metric upgrade
+    out = _bound_spread(shape, xy)
+    spreads = np.sqrt(np.linalg.eigvalsh(np.cov((out - out.mean(0)).T, bias=True)))
+    assert spreads.max() <= MAX_DEPTH_RATIO * r2 * (1 + 1e-9)
+    np.testing.assert_allclose(out.mean(0), shape.mean(0))
+    ok = rng.normal(size=(8, 3)) * 0.1 * r2  # a plausible shape is left alone
+    np.testing.assert_array_equal(_bound_spread(ok, xy), ok)
+
+
 def test_fill_gaps_interpolates_interior_gaps_only():
     from stickfigure.models.em.initialise import fill_gaps
 
