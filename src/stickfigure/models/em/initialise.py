@@ -159,7 +159,7 @@ def _bound_spread(local: np.ndarray, xy: np.ndarray) -> np.ndarray:
     motion never revealed. With sparse data the metric upgrade can return such axes
     hundreds of scene sizes long (a near-singular metric matrix), and a stick that long
     fits its projections by foreshortening, so EM keeps it: the cap keeps the start in
-    the region of real shapes (on complete data it does not bind).
+    the region of real shapes (applied to groups with missing entries only).
     """
     c = local.mean(axis=0)
     X = local - c
