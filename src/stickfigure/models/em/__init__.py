@@ -28,7 +28,7 @@ from ..base import StickEstimator, register
 from .initialise import fill_gaps, initial_state, interpolate_rotations
 from .model import Observations, Priors, StickState, chain_degree, normalise
 from .structure import EMSettings, Stage, learn_structure, stick_edges
-from .updates import complete_rotation, update_endpoints
+from .updates import FLAT_RATIO, complete_rotation, update_endpoints
 
 __all__ = ["EMSkeleton", "fit_stages"]
 
@@ -413,14 +413,23 @@ def _impute_state(skeleton: Skeleton, traj: Trajectories) -> tuple[StickState, O
         # A rotation from a few points can sit in the wrong mirror branch: start those frames
         # from the interpolation of the well-observed ones, and let EM refine them locally.
         good = cnt >= max(4, int(np.ceil(0.6 * idx.size)))
-        if not good.any():
-            good = cnt >= max(cnt.max(), 1)
         w = np.nan_to_num(obs.w[idx]).transpose(1, 2, 0)  # (F, D, n)
         cw = np.maximum(cnt, 1)
         abar = np.einsum("fdn,fn->fd", w, m) / cw[:, None]
         lbar = (m @ local[idx]) / cw[:, None]  # (F, 3)
         A = (w - abar[..., None]) * m[:, None, :]
         B = (local[idx].T[None] - lbar[..., None]) * m[:, None, :]
+        # The visible points alone may be nearly coplanar where the stick is not: their mirror
+        # image fits them as well and puts the hidden ones elsewhere. Such frames are
+        # interpolated like the sparse ones.
+        lam = np.linalg.eigvalsh(B @ np.swapaxes(B, 1, 2))  # (F, 3), ascending
+        Lc = local[idx] - local[idx].mean(axis=0)
+        lam_all = np.linalg.eigvalsh(Lc.T @ Lc)
+        ratio_all = lam_all[0] / max(lam_all[2], 1e-300)
+        ratio = lam[:, 0] / np.maximum(lam[:, 2], 1e-300)
+        good &= ratio >= min(FLAT_RATIO ** 2, 0.5 * ratio_all)
+        if not good.any():
+            good = cnt >= max(cnt.max(), 1)
         R = orthogonal_procrustes_rows(A, B)
         R = interpolate_rotations(R, good)
         t = abar - np.einsum("fdk,fk->fd", R, lbar)
