@@ -25,10 +25,10 @@ from ..._validation import check_labels, check_positive
 from ...skeleton import Skeleton
 from ...trajectories import Trajectories
 from ..base import StickEstimator, register
-from .initialise import initial_state
+from .initialise import fill_gaps, initial_state, interpolate_rotations
 from .model import Observations, Priors, StickState, chain_degree, normalise
 from .structure import EMSettings, Stage, learn_structure, stick_edges
-from .updates import complete_rotation, update_endpoints
+from .updates import FLAT_RATIO, complete_rotation, update_endpoints
 
 __all__ = ["EMSkeleton", "fit_stages"]
 
@@ -121,7 +121,7 @@ class EMSkeleton(StickEstimator):
                  max_merges: int | None = None, merge_baseline: bool = True, n_polish: int = 3,
                  reuse_scores: bool = True, tol: float = 1e-4, min_stick_points: int = 3,
                  max_sticks: int | None = None, labels: Any = None, refine_sticks: bool = True,
-                 articulated_rounds: int = 4, tau_p: float = 1.0,
+                 articulated_rounds: int = 4, tau_p: float = 25.0,
                  alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e10, impute_iter: int = 100,
                  random_state: Any = None, progress: bool = False) -> None:
         self.n_iter = n_iter
@@ -228,9 +228,13 @@ class EMSkeleton(StickEstimator):
         # With fewer than 3 visible points (plus its endpoints) a frame leaves the stick's rotation
         # open (a turn about the line through two points, a mirror): keep the interpolated one there.
         hold = state.design(obs).n < 3
-        for _ in range(n_iter):
+        # Every resample_every sweeps (not in the last ones) the multi-start rotation search of
+        # training: a rotation fitted to a few nearly coplanar points can sit in the mirror
+        # branch, and the joints (endpoint terms) tell the branches apart.
+        every = max(int(settings.resample_every), 1) if settings.resample_every else 10
+        for it in range(n_iter):
             em_sweep(state, obs, priors, precisions=False, local=False, n_procrustes=settings.n_procrustes,
-                     hold=hold)
+                     hold=hold, global_rotations=it % every == 0 and it < n_iter - every)
         centre, scale = norm
         return state.point_predictions() * scale + centre
 
@@ -245,10 +249,8 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
     P = traj.n_points
     info0: dict[str, Any] = {}
     if labels is None:
-        from ...segmentation import affinity_propagation_segments
-
         ms = max_sticks if max_sticks is not None else int(max(2, min(20, P // 3)))
-        labels, ap = affinity_propagation_segments(traj.xy, max_segments=ms, random_state=rng, return_info=True)
+        labels, ap = _initial_groups(traj, ms, rng)
         info0["initial_clustering"] = {k: v for k, v in ap.items() if isinstance(v, (int, float, str, type(None)))}
     else:
         labels = check_labels(labels, P, "labels")
@@ -279,6 +281,63 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
     info0["settings"] = asdict(settings)
     info0["priors"] = asdict(priors)
     return stages, selected, (centre, scale), info0
+
+
+def _rigid_bic_terms(xy: np.ndarray, labels: np.ndarray) -> tuple[float, float, float]:
+    """RSS of every group's own affine rank-3 fit to its *observed* entries, its parameter
+    count (per frame at most the coordinates the group shows there) and N."""
+    from ...geometry import affine_factorization
+
+    obs = ~np.isnan(xy[..., 0])
+    D = xy.shape[2]
+    rss = k = 0.0
+    for c in np.unique(labels):
+        idx = np.flatnonzero(labels == c)
+        seen = obs[idx].sum(axis=0)
+        k += float(np.minimum(D * 4, D * seen).sum()) + 3.0 * idx.size
+        if idx.size > 4:
+            fac = affine_factorization(xy[idx], rank=3, random_state=0)
+            rss += fac.rms ** 2 * fac.n_observed * D
+    return rss, k, float(obs.sum() * D)
+
+
+def _initial_groups(traj: Trajectories, max_segments: int, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
+    """Affinity Propagation groups; with missing data also from the gap-interpolated trajectories.
+
+    The rigid-subspace affinity completes gaps by a low-rank fit, which with sparse
+    observations (75% withheld) merges the whole scene into one or two groups; with
+    every point's gaps filled by linear interpolation in time (held at the nearest
+    observation before the first and after the last, :func:`initialise.fill_gaps`) the
+    groups come out right far more often, but over a
+    long gap (an occluder) interpolation bends the trajectory and can mix parts. So
+    where at least half of the entries are observed both groupings are made and the
+    one with the lower BIC of per-group affine fits to the observed entries is kept
+    (with sparse data those fits are undetermined; the interpolated grouping is used).
+    The EM itself sees the observations only.
+    """
+    from ...segmentation import affinity_propagation_segments
+
+    if traj.observed.all():
+        return affinity_propagation_segments(traj.xy, max_segments=max_segments, random_state=rng,
+                                             return_info=True)
+    seed = int(rng.integers(2**31 - 1))
+    filled = fill_gaps(traj.xy)
+    lab_f, info_f = affinity_propagation_segments(filled, max_segments=max_segments, random_state=seed,
+                                                  return_info=True)
+    info_f = {**info_f, "input": "gaps interpolated"}
+    if traj.observed.mean() < 0.5:
+        return lab_f, info_f
+    lab_r, info_r = affinity_propagation_segments(traj.xy, max_segments=max_segments, random_state=seed,
+                                                  return_info=True)
+    if np.array_equal(lab_r, lab_f):
+        return lab_f, info_f
+    terms = [_rigid_bic_terms(traj.xy, lab) for lab in (lab_f, lab_r)]
+    N = terms[0][2]
+    sig2 = min(r / max(N - k, 1.0) for r, k, _ in terms)
+    bic = [r / (2.0 * max(sig2, 1e-300)) + 0.5 * k * np.log(N) for r, k, _ in terms]
+    if bic[1] < bic[0]:
+        return lab_r, {**info_r, "input": "gaps as given"}
+    return lab_f, info_f
 
 
 def _skeleton(stages: list[Stage], selected: int, norm: tuple[np.ndarray, float], info0: dict[str, Any],
@@ -326,38 +385,6 @@ def _skeleton(stages: list[Stage], selected: int, norm: tuple[np.ndarray, float]
                     info=info)
 
 
-def _interpolate_rotations(R: np.ndarray, good: np.ndarray) -> np.ndarray:
-    """Rotations (F, D, 3) kept where ``good``, spherically interpolated in between (held at the ends)."""
-    from .updates import quat_to_rot, rot_to_quat
-
-    F, D, _ = R.shape
-    gi = np.flatnonzero(good)
-    if gi.size == F:
-        return R
-    q = rot_to_quat(complete_rotation(R[gi]))
-    # Consecutive quaternions on the same hemisphere (q and -q are the same rotation).
-    flip = np.ones(gi.size)
-    flip[1:] = np.sign(np.sum(q[1:] * q[:-1], axis=1) + 1e-300)
-    q = q * np.cumprod(flip)[:, None]
-    f = np.arange(F)
-    i1 = np.clip(np.searchsorted(gi, f), 0, gi.size - 1)
-    i0 = np.clip(i1 - 1, 0, gi.size - 1)
-    i0 = np.where(gi[i1] == f, i1, i0)
-    g0, g1 = gi[i0], gi[i1]
-    w = np.where(g1 > g0, (f - g0) / np.maximum(g1 - g0, 1), 0.0)
-    w = np.where(f >= gi[-1], 0.0, w)
-    q0, q1 = q[i0], q[np.where(f >= gi[-1], i0, i1)]
-    dot = np.clip(np.sum(q0 * q1, axis=1), -1.0, 1.0)
-    th = np.arccos(dot)
-    sth = np.sin(th)
-    small = sth < 1e-8
-    a = np.where(small, 1.0 - w, np.sin((1.0 - w) * th) / np.where(small, 1.0, sth))
-    b = np.where(small, w, np.sin(w * th) / np.where(small, 1.0, sth))
-    qi = a[:, None] * q0 + b[:, None] * q1
-    qi /= np.linalg.norm(qi, axis=1, keepdims=True)
-    return quat_to_rot(qi)[:, :D, :]
-
-
 def _impute_state(skeleton: Skeleton, traj: Trajectories) -> tuple[StickState, Observations, tuple]:
     """A state for new frames: fixed L, K, G, R; motions by Procrustes; vertices from endpoints."""
     from ...geometry import orthogonal_procrustes_rows
@@ -386,16 +413,25 @@ def _impute_state(skeleton: Skeleton, traj: Trajectories) -> tuple[StickState, O
         # A rotation from a few points can sit in the wrong mirror branch: start those frames
         # from the interpolation of the well-observed ones, and let EM refine them locally.
         good = cnt >= max(4, int(np.ceil(0.6 * idx.size)))
-        if not good.any():
-            good = cnt >= max(cnt.max(), 1)
         w = np.nan_to_num(obs.w[idx]).transpose(1, 2, 0)  # (F, D, n)
         cw = np.maximum(cnt, 1)
         abar = np.einsum("fdn,fn->fd", w, m) / cw[:, None]
         lbar = (m @ local[idx]) / cw[:, None]  # (F, 3)
         A = (w - abar[..., None]) * m[:, None, :]
         B = (local[idx].T[None] - lbar[..., None]) * m[:, None, :]
+        # The visible points alone may be nearly coplanar where the stick is not: their mirror
+        # image fits them as well and puts the hidden ones elsewhere. Such frames are
+        # interpolated like the sparse ones.
+        lam = np.linalg.eigvalsh(B @ np.swapaxes(B, 1, 2))  # (F, 3), ascending
+        Lc = local[idx] - local[idx].mean(axis=0)
+        lam_all = np.linalg.eigvalsh(Lc.T @ Lc)
+        ratio_all = lam_all[0] / max(lam_all[2], 1e-300)
+        ratio = lam[:, 0] / np.maximum(lam[:, 2], 1e-300)
+        good &= ratio >= min(FLAT_RATIO ** 2, 0.5 * ratio_all)
+        if not good.any():
+            good = cnt >= max(cnt.max(), 1)
         R = orthogonal_procrustes_rows(A, B)
-        R = _interpolate_rotations(R, good)
+        R = interpolate_rotations(R, good)
         t = abar - np.einsum("fdk,fk->fd", R, lbar)
         seen = cnt > 0
         if not seen.all():  # no visible point: translation interpolated between frames that have one

@@ -36,9 +36,146 @@ from .model import Ghosts, Observations, Priors, StickState, chain_degree
 __all__ = ["stick_sfm", "initial_state", "end_positions"]
 
 
+def fill_gaps(xy: np.ndarray, *, ends: bool = True) -> np.ndarray:
+    """Trajectories with their gaps filled by linear interpolation in time, shape (P, F, D).
+
+    Interior gaps (between two observations of a point) are interpolated; with
+    ``ends`` the frames before the first and after the last observation hold
+    the nearest observed position, else they stay NaN. Points never observed
+    stay NaN. A start for methods that need complete data (the motions of
+    smooth trajectories change little over a short gap), never a substitute for
+    the observations in the likelihood.
+    """
+    out = np.array(xy, dtype=float, copy=True)
+    P, F, D = out.shape
+    f = np.arange(F)
+    for p in range(P):
+        o = ~np.isnan(out[p, :, 0])
+        if o.all() or not o.any():
+            continue
+        fo = np.flatnonzero(o)
+        gap = np.flatnonzero(~o)
+        if not ends:
+            gap = gap[(gap > fo[0]) & (gap < fo[-1])]
+        for d in range(D):
+            out[p, gap, d] = np.interp(f[gap], fo, out[p, fo, d])
+    return out
+
+
+def interpolate_rotations(R: np.ndarray, good: np.ndarray) -> np.ndarray:
+    """Rotations (F, D, 3) kept where ``good``, spherically interpolated in between (held at the ends).
+
+    (Frames after the last good one take its rotation; the copy this replaces gave
+    them the rotation of the last but one.)
+    """
+    from .updates import complete_rotation, quat_to_rot, rot_to_quat, slerp_fill
+
+    F, D, _ = R.shape
+    if good.all() or not good.any():
+        return R
+    q = rot_to_quat(complete_rotation(R))
+    return quat_to_rot(slerp_fill(q, good))[:, :D, :]
+
+
+def _translations(w: np.ndarray, m: np.ndarray, R: np.ndarray, local: np.ndarray) -> np.ndarray:
+    """Least-squares t_f = mean over visible points of (w - R l); interpolated where none is visible.
+
+    w (n, F, D) with 0 where missing, m (n, F), R (F, D, 3), local (n, 3) -> (F, D).
+    """
+    F, D = R.shape[0], R.shape[1]
+    cnt = m.sum(axis=0)
+    resid = w - np.einsum("fdk,nk->nfd", R, local)
+    t = np.einsum("nfd,nf->fd", resid, m) / np.maximum(cnt, 1)[:, None]
+    seen = cnt > 0
+    if seen.any() and not seen.all():
+        si = np.flatnonzero(seen)
+        for d in range(D):
+            t[~seen, d] = np.interp(np.flatnonzero(~seen), si, t[si, d])
+    return t
+
+
+def _fit_local(w: np.ndarray, m: np.ndarray, R: np.ndarray, t: np.ndarray, ridge: float = 1e-6) -> np.ndarray:
+    """Least-squares local coordinates of each point from its *observed* entries, shape (n, 3).
+
+    ``(sum_f o R^T R + ridge I) l = sum_f o R^T (w - t)``: the L update with the
+    observations alone (a tiny ridge keeps unobservable directions at 0).
+    """
+    RtR = np.swapaxes(R, -1, -2) @ R  # (F, 3, 3)
+    H = np.einsum("nf,fab->nab", m, RtR) + ridge * np.eye(3)
+    rhs = np.einsum("nf,fdk,nfd->nk", m, R, w - t[None])
+    return np.linalg.solve(H, rhs[..., None])[..., 0]
+
+
+def _rigid_sfm(pts: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Metric SfM of one rigid group (n >= 4 points) with NaN gaps: R (F, D, 3), t (F, D), local (n, 3).
+
+    Missing entries stay out of every fit. Frames where the group shows at least 4
+    points determine their affine motion; when such frames are most of them and
+    every point is seen in one of them, the factorisation (Wiberg, the gaps left
+    out) runs on those frames alone, and the others get rotations interpolated
+    between them and translations fitted to their visible points (a frame with
+    fewer than 4 points leaves its affine motion undetermined, and a garbage one
+    would corrupt the metric upgrade of all frames). Otherwise (sparse data:
+    frames rarely show 4 points) the factorisation runs on the trajectories
+    with their gaps interpolated in time (:func:`fill_gaps`), and the local
+    coordinates and translations are then re-fitted to the observed entries
+    only.
+    """
+    n, F, D = pts.shape
+    obs = ~np.isnan(pts[..., 0])
+    m = obs.astype(float)
+    w = np.where(obs[..., None], pts, 0.0)
+    cnt = obs.sum(axis=0)
+    good = cnt >= 4
+    if obs.all():
+        fac = affine_factorization(pts, rank=3, random_state=rng)
+        R, _, t, shape = metric_upgrade(fac.motions, fac.shape)
+        return R, t, shape
+    filled = fill_gaps(pts)
+    if good.sum() >= max(3, 0.5 * F) and obs[:, good].any(axis=1).all():
+        fac = affine_factorization(pts[:, good], rank=3, random_state=rng)
+        Rg, _, _, local = metric_upgrade(fac.motions, fac.shape)
+        R = np.zeros((F, D, 3))
+        R[good] = Rg
+        R = interpolate_rotations(R, good)
+    else:
+        fac = affine_factorization(filled, rank=3, random_state=rng)
+        R, _, t, _ = metric_upgrade(fac.motions, fac.shape)
+        local = _fit_local(w, m, R, t)
+    local = _bound_spread(local, filled)
+    return R, _translations(w, m, R, local), local
+
+
+#: A group's 3D principal spreads are capped at this multiple of its largest 2D spread over frames.
+MAX_DEPTH_RATIO = 2.0
+
+
+def _bound_spread(local: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Local shape (n, 3) with every principal spread at most ``MAX_DEPTH_RATIO`` times the
+    largest RMS radius the group shows in any frame of ``xy`` (n, F, D), complete.
+
+    A rigid body's spread along an axis is at most its 2D RMS radius in a frame where that
+    axis lies in the image plane; a spread far beyond every frame's radius is one the
+    motion never revealed. With sparse data the metric upgrade can return such axes
+    hundreds of scene sizes long (a near-singular metric matrix), and a stick that long
+    fits its projections by foreshortening, so EM keeps it: the cap keeps the start in
+    the region of real shapes (applied to groups with missing entries only).
+    """
+    c = local.mean(axis=0)
+    X = local - c
+    lam, V = np.linalg.eigh(X.T @ X / max(local.shape[0], 1))
+    spread = np.sqrt(np.maximum(lam, 0.0))
+    r2 = np.sqrt(np.max(np.mean(np.sum((xy - xy.mean(axis=0)) ** 2, axis=-1), axis=0)))
+    cap = MAX_DEPTH_RATIO * r2
+    if not np.isfinite(cap) or np.all(spread <= cap):
+        return local
+    f = np.where(spread > cap, cap / np.maximum(spread, 1e-300), 1.0)
+    return c + X @ V @ np.diag(f) @ V.T
+
+
 def stick_sfm(obs: Observations, labels: np.ndarray, n_sticks: int, rng: np.random.Generator
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per-stick orthographic structure from motion.
+    """Per-stick orthographic structure from motion (missing entries left out, see :func:`_rigid_sfm`).
 
     Returns
     -------
@@ -56,19 +193,22 @@ def stick_sfm(obs: Observations, labels: np.ndarray, n_sticks: int, rng: np.rand
             continue
         pts = xy[idx]
         m = obs.mask[idx]
-        cnt = m.sum(axis=0)
-        if idx.size >= 4 and np.all(cnt >= 1):
-            fac = affine_factorization(pts, rank=3, random_state=rng)
-            R, _, t, shape = metric_upgrade(fac.motions, fac.shape)
-            rot[s], trans[s], local[idx] = R, t, shape
+        if idx.size >= 4:
+            rot[s], trans[s], local[idx] = _rigid_sfm(pts, rng)
             continue
         # Too few points for a rank-3 factorisation: a flat shape seen face-on, translations
         # from the visible centroid (held over frames where none is visible); EM refines it.
-        cen = np.nansum(pts, axis=0) / np.maximum(cnt, 1)[:, None]  # (F, D)
-        seen = np.flatnonzero(cnt > 0)
-        nearest = seen[np.clip(np.searchsorted(seen, np.arange(F)), 0, seen.size - 1)]
-        trans[s] = cen[nearest]
-        off = np.nanmean(pts - trans[s][None], axis=1)  # (n, D)
+        # Offsets and translations jointly (w_pf = off_p + t_f by alternating least squares on
+        # the visible entries): the centroid of whichever points a frame shows is not the
+        # group's centroid when some are missing.
+        w = np.where(m[..., None] > 0, pts, 0.0)
+        off = np.zeros((idx.size, D))
+        R0 = np.zeros((F, D, 3))
+        R0[:, :, :D] = np.eye(D)
+        for _ in range(1 if m.all() else 20):
+            t = _translations(w, m, R0, np.pad(off, ((0, 0), (0, 3 - D))))
+            off = np.einsum("nfd,nf->nd", w - t[None], m) / np.maximum(m.sum(axis=1), 1)[:, None]
+        trans[s] = _translations(w, m, R0, np.pad(off, ((0, 0), (0, 3 - D))))
         local[idx, :D] = off
     return rot, trans, local
 
@@ -135,7 +275,10 @@ def initial_state(obs: Observations, labels: np.ndarray, n_sticks: int, priors: 
         cnt = st.design(obs).n  # (S, F)
         cen_local = st.design(obs).stick_sum(local) / np.maximum(np.bincount(labels, minlength=S), 1)[:, None]
         pred = np.einsum("sfdk,sk->sfd", rot, cen_local) + trans
-        avg = np.where(cnt[..., None] > 0, sums / np.maximum(cnt, 1)[..., None], pred)
+        # The average of the observations where the stick shows all its points; where some are
+        # missing, the average of the visible ones is not the stick's centroid: its prediction is.
+        full = cnt >= np.bincount(labels, minlength=S)[:, None]
+        avg = np.where(full[..., None], sums / np.maximum(cnt, 1)[..., None], pred)
         st.mu_e = np.repeat(avg, E, axis=0)
         k = np.einsum("sfdk,sfd->sk", rot, avg - trans) / F
         st.ends = np.repeat(k, E, axis=0)

@@ -127,7 +127,7 @@ class Priors:
         with the default: at least 0.3 times the observation noise).
     """
 
-    tau_p: float = 1.0
+    tau_p: float = 25.0
     alpha0: float = 1.0
     beta0: float = 1e-3
     max_precision: float = 1e10

@@ -486,9 +486,59 @@ def _principal_axes(st: StickState) -> tuple[np.ndarray, np.ndarray]:
     return np.swapaxes(V, -1, -2)[:, None], flat
 
 
+#: A stick's rotation in a frame is determined by its points only where it shows at least this many
+#: (two points leave a turn about the line through them free, and let the stick's depth grow
+#: without bound: any projected distance up to the 3D one is then fitted exactly).
+MIN_ROTATION_POINTS = 3
+
+
+def slerp_fill(q: np.ndarray, good: np.ndarray) -> np.ndarray:
+    """Quaternions (..., F, 4) kept where ``good`` (..., F), spherically interpolated in between.
+
+    Frames before the first / after the last good frame take its value; rows without
+    a good frame are returned unchanged.
+    """
+    F = good.shape[-1]
+    f = np.arange(F)
+    prev = np.maximum.accumulate(np.where(good, f, -1), axis=-1)
+    nxt = np.flip(np.minimum.accumulate(np.flip(np.where(good, f, F), axis=-1), axis=-1), axis=-1)
+    p = np.where(prev < 0, nxt, prev)
+    n = np.where(nxt >= F, prev, nxt)
+    none = (p < 0) | (p >= F)
+    p, n = np.clip(p, 0, F - 1), np.clip(n, 0, F - 1)
+    w = np.where(n > p, (f - p) / np.maximum(n - p, 1), 0.0)
+    q0 = np.take_along_axis(q, p[..., None], axis=-2)
+    q1 = np.take_along_axis(q, n[..., None], axis=-2)
+    dot = np.sum(q0 * q1, axis=-1)
+    q1 = np.where(dot[..., None] < 0, -q1, q1)
+    th = np.arccos(np.clip(np.abs(dot), -1.0, 1.0))
+    sth = np.sin(th)
+    small = sth < 1e-8
+    a = np.where(small, 1.0 - w, np.sin((1.0 - w) * th) / np.where(small, 1.0, sth))
+    b = np.where(small, w, np.sin(w * th) / np.where(small, 1.0, sth))
+    qi = a[..., None] * q0 + b[..., None] * q1
+    qi /= np.maximum(np.linalg.norm(qi, axis=-1, keepdims=True), 1e-300)
+    return np.where(none[..., None], q, qi)
+
+
+def underdetermined_frames(st: StickState, obs: Observations) -> np.ndarray | None:
+    """(S, F) bool: frames where a stick of >= 3 points shows fewer than ``MIN_ROTATION_POINTS``.
+
+    Only sticks with at least one frame that does show that many are marked (a
+    stick of one or two points has its rotation from its joints, not from
+    interpolation). None when no frame is marked (complete data).
+    """
+    des = st.design(obs)
+    size = np.bincount(st.labels, minlength=st.n_sticks)
+    few = des.n < MIN_ROTATION_POINTS
+    ok = (size >= MIN_ROTATION_POINTS) & (~few).any(axis=1)
+    out = few & ok[:, None]
+    return out if out.any() else None
+
+
 def update_motions(st: StickState, obs: Observations, *, n_procrustes: int = 1, newton: bool = False,
                    global_search: bool = False, sticks: np.ndarray | None = None, use_polar: bool = True,
-                   hold: np.ndarray | None = None, n_newton: int = 2, only_mirrors: bool = False) -> None:
+                   hold: np.ndarray | None | str = "auto", n_newton: int = 2, only_mirrors: bool = False) -> None:
     """Rotations and translations of every stick in every frame, jointly.
 
     The weighted problem ``min_{R,t} sum_n w_n |a_n - R b_n - t|^2`` over the
@@ -500,10 +550,17 @@ def update_motions(st: StickState, obs: Observations, *, n_procrustes: int = 1, 
     new rotation is kept only where it lowers that energy, so the update is
     monotone. ``global_search`` runs :func:`best_rotations` instead of the Newton
     step, on the sticks in ``sticks`` (indices) or on all (``only_mirrors``: see
-    :func:`best_rotations`). ``hold`` (S, F) keeps
-    the current rotation of those (stick, frame) pairs (the translation is still
-    updated).
+    :func:`best_rotations`). ``hold`` (S, F) marks (stick, frame) pairs whose
+    rotation the frame cannot determine; ``"auto"`` (default) marks those of
+    :func:`underdetermined_frames` (frames of a stick showing fewer than 3 of its
+    points: with missing data the free rotations there let the stick's depth grow
+    without bound). A held rotation is not solved for; it moves to the spherical
+    interpolation of the stick's rotations in its nearest determined frames
+    where that lowers the frame's energy, else it stays (so the update stays
+    monotone). Translations are updated everywhere.
     """
+    if isinstance(hold, str):
+        hold = underdetermined_frames(st, obs) if hold == "auto" else None
     a_bar, b_bar, C_ab, C_bb = _motion_statistics(st, obs)
     q0 = st._quat if st._quat is not None and st._quat_of is st.rot else rot_to_quat(complete_rotation(st.rot))
     R_new, q_new = procrustes_step(st.rot, C_ab, C_bb, n_outer=n_procrustes, quat=q0)
@@ -529,9 +586,12 @@ def update_motions(st: StickState, obs: Observations, *, n_procrustes: int = 1, 
         if better.any():
             R = R_n
             q = np.where(better[..., None], rot_to_quat(complete_rotation(R_n)), q)
-    if hold is not None:  # rotations held where the caller says the frame cannot determine them
-        R = np.where(hold[..., None, None], st.rot, R)
-        q = np.where(hold[..., None], q0, q)
+    if hold is not None:  # rotations the frame cannot determine: interpolated, where that is better
+        q_int = slerp_fill(q, ~hold)
+        R_int = quat_to_rot(q_int)[..., :R.shape[-2], :]
+        better = hold & (_rotation_energy(R_int, C_ab, C_bb) < _rotation_energy(st.rot, C_ab, C_bb))
+        R = np.where(hold[..., None, None], np.where(better[..., None, None], R_int, st.rot), R)
+        q = np.where(hold[..., None], np.where(better[..., None], q_int, q0), q)
     st.rot = R
     st._quat = q
     st._quat_of = R
@@ -589,7 +649,7 @@ def update_precisions(st: StickState, obs: Observations, priors: Priors) -> None
 
 def em_sweep(st: StickState, obs: Observations, priors: Priors, *, precisions: bool = True,
              local: bool = True, n_procrustes: int = 1, global_rotations: bool = False,
-             use_polar: bool = True, hold: np.ndarray | None = None) -> None:
+             use_polar: bool = True, hold: np.ndarray | None | str = "auto") -> None:
     """One EM iteration: E-step (endpoints, vertices, phi) then M-step (motions, L, K, precisions).
 
     Parameters
@@ -602,8 +662,8 @@ def em_sweep(st: StickState, obs: Observations, priors: Priors, *, precisions: b
     global_rotations : bool
         Use the multi-start rotation search (:func:`best_rotations`) in this sweep
         (with the SVD start when ``use_polar``).
-    hold : ndarray of bool, shape (S, F), optional
-        Rotations not to update (see :func:`update_motions`).
+    hold : ndarray of bool, shape (S, F), "auto" or None
+        Rotations the frames cannot determine (see :func:`update_motions`).
     """
     update_endpoints(st)
     update_vertices(st)
