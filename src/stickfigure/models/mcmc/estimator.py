@@ -70,7 +70,7 @@ class StickMCMC(StickEstimator):
     n_launch : int
         Restricted Gibbs scans building a split-merge launch state.
     n_tree_moves : int
-        Rounds of sub-tree, path-reversal, swap and re-hang moves per sweep.
+        Rounds of sub-tree, path-reversal, swap, re-hang and re-attaching split-merge moves per sweep.
     init : "single" or int
         Start every chain from one stick, or from this many k-means clusters.
     n_starts : int

@@ -114,7 +114,7 @@ class SweepConfig:
     n_launch : int
         Intermediate restricted Gibbs scans building a split's launch state.
     n_subtree : int
-        Sub-tree moves per sweep.
+        Rounds of tree moves per sweep (sub-tree, path reversal, swap, re-hang, re-attaching split-merge).
     structure : bool
         Update indicators and the tree (False keeps them fixed: imputation on new frames).
     likelihood : bool
