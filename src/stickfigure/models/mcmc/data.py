@@ -183,13 +183,17 @@ def rigid_imputation(z: np.ndarray, n_neighbours: int = 4, n_ref: int = 3) -> np
         return out
     I, F = z.shape
     zf = np.where(obs, z, 0)
-    co = obs[:, None, :] & obs[None, :, :]  # (I, I, F)
-    ncol = co.sum(-1)
-    d = np.abs(zf[:, None, :] - zf[None, :, :])
-    m1 = (d * co).sum(-1) / np.maximum(ncol, 1)
-    m2 = (d * d * co).sum(-1) / np.maximum(ncol, 1)
-    sd = np.sqrt(np.maximum(m2 - m1 * m1, 0.0))
-    sd[(ncol < 3) | np.eye(I, dtype=bool)] = np.inf
+    sd = np.empty((I, I))
+    m1 = np.empty((I, I))
+    for i in range(I):  # row by row: memory O(I F)
+        co = obs[i][None] & obs
+        ncol = co.sum(-1)
+        d = np.abs(zf[i][None] - zf)
+        m1[i] = (d * co).sum(-1) / np.maximum(ncol, 1)
+        m2 = (d * d * co).sum(-1) / np.maximum(ncol, 1)
+        sd[i] = np.sqrt(np.maximum(m2 - m1[i] ** 2, 0.0))
+        sd[i, ncol < 3] = np.inf
+    np.fill_diagonal(sd, np.inf)
     best = sd.min(1)
     finite = np.isfinite(best)
     if not finite.any():
