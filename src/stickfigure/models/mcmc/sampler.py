@@ -62,7 +62,7 @@ class ChainSettings:
     init_size: int = 4
     anneal: float = 0.8
     beta0: float = 0.01
-    n_starts: int = 3
+    n_starts: int = 5
     polish: bool = True
 
 
