@@ -123,6 +123,10 @@ def _reverse(st, data, rng, hyper=HYPER, stats=None):
     return K.reverse_path(st, data, hyper, rng, stats)
 
 
+def _reattach(st, data, rng, hyper=HYPER, stats=None):
+    return K.reattach_move(st, data, hyper, rng, CFG, stats)[0]
+
+
 def _swap(st, data, rng, hyper=HYPER, stats=None):
     return K.swap_move(st, data, hyper, rng, CFG, stats)[0]
 
@@ -132,7 +136,8 @@ def _rehang(st, data, rng, hyper=HYPER, stats=None):
 
 
 STRUCTURE_KERNELS = {"gibbs": _gibbs, "split_merge": _split_merge, "subtree": _subtree,
-                     "reverse_path": _reverse, "swap": _swap, "rehang": _rehang}
+                     "reverse_path": _reverse, "swap": _swap, "rehang": _rehang,
+                     "reattach": _reattach}
 
 
 def _param_stats(st: State) -> np.ndarray:
@@ -193,25 +198,41 @@ def test_invariance_check_has_power():
     assert _chi2_pvalue(counts, _exact(3, 1.0)) < 1e-4
 
 
+def _lucky(rng):
+    """A generator whose bare ``random()`` (the acceptance draw) always passes."""
+    real = rng.random
+
+    class Lucky:
+        def __getattr__(self, name):
+            return getattr(rng, name)
+
+        def random(self, *a, **k):
+            return real(*a, **k) if a or k else 1e-300
+
+    return Lucky()
+
+
 def test_parameter_check_has_power():
     """A re-hang whose uniform draws are all tiny, so that it accepts whatever its ratio (the
     re-fitted node's parameters then follow the data-driven proposal, not the prior), is
     caught by the parameter statistics."""
 
     def always(st, data, rng, hyper, stats):
-        real = rng.random
-
-        class Lucky:  # the acceptance draw always passes
-            def __getattr__(self, name):
-                return getattr(rng, name)
-
-            def random(self, *a, **k):
-                return real(*a, **k) if a or k else 1e-300
-
-        return K.rehang_move(st, data, hyper, Lucky(), CFG, stats)[0]
+        return K.rehang_move(st, data, hyper, _lucky(rng), CFG, stats)[0]
 
     _, prior, after, _ = _apply_to_prior_draws(always, 500, 3, seed=11, hyper=LOOSE)
     assert _min_ks(prior, after) < 1e-3 / prior.shape[1]
+
+
+def test_reattach_check_has_power():
+    """The re-attaching split-merge with its acceptance draw always passing is caught (its
+    invariance test above is the same check on the real kernel)."""
+
+    def always(st, data, rng, hyper, stats):
+        return K.reattach_move(st, data, hyper, _lucky(rng), CFG, stats)[0]
+
+    counts, *_ = _apply_to_prior_draws(always, 500, 3, seed=11, hyper=LOOSE)
+    assert _chi2_pvalue(counts, _exact(3, 1.0)) < 1e-4
 
 
 def test_internal_singleton_keeps_its_point():

@@ -33,7 +33,7 @@ from .kernels import fit_node
 from .model import Hyper, translation_conditional
 from .state import Data, State
 
-__all__ = ["TARGET_REACH", "rigid_part_size", "normalise", "initial_imputation", "initial_state"]
+__all__ = ["TARGET_REACH", "rigid_part_size", "normalise", "initial_imputation", "rigid_imputation", "initial_state"]
 
 #: Median rigid reach of the points, in model units, after normalisation.
 TARGET_REACH = 0.33
@@ -155,6 +155,72 @@ def initial_imputation(z: np.ndarray) -> np.ndarray:
     for i in np.flatnonzero(np.isnan(z).any(1)):
         ok = ~np.isnan(z[i])
         out[i] = np.interp(t, t[ok], z[i, ok].real) + 1j * np.interp(t, t[ok], z[i, ok].imag)
+    return out
+
+
+def rigid_imputation(z: np.ndarray, n_neighbours: int = 4, n_ref: int = 3) -> np.ndarray:
+    """Fill missing entries from the points that move rigidly with each one, else by interpolation.
+
+    A fixed function of the observed entries (the sampler builds its structure
+    proposals from it, see :attr:`.state.Data.x_proposal`). For a hidden entry
+    ``(i, f)`` the points that keep the steadiest distance to ``i`` over the frames
+    both are seen in (distance standard deviation at most three times the typical
+    one of a point's steadiest partner: the same rigid part) and are seen in frame
+    ``f`` carry ``i`` along: with at least two of them (up to ``n_neighbours``), a 2D
+    rotation and translation mapping them from each of the ``n_ref`` nearest frames
+    where ``i`` and they are all seen onto frame ``f`` is applied to ``i``, and the
+    predictions are averaged. Entries without such partners (their whole part hidden)
+    are interpolated linearly in time (:func:`initial_imputation`).
+
+    Linear interpolation of a turning stick shortens it and bends its path; a rigid
+    fit to such a completion then sees residuals tens of times the noise (measured on
+    the occluded arm: a stick hidden in 19% of its entries got a noise precision 60
+    times too small), and proposals built on it are far from anything the chain holds.
+    """
+    out = initial_imputation(z)
+    obs = ~np.isnan(z)
+    if obs.all():
+        return out
+    I, F = z.shape
+    zf = np.where(obs, z, 0)
+    sd = np.empty((I, I))
+    m1 = np.empty((I, I))
+    for i in range(I):  # row by row: memory O(I F)
+        co = obs[i][None] & obs
+        ncol = co.sum(-1)
+        d = np.abs(zf[i][None] - zf)
+        m1[i] = (d * co).sum(-1) / np.maximum(ncol, 1)
+        m2 = (d * d * co).sum(-1) / np.maximum(ncol, 1)
+        sd[i] = np.sqrt(np.maximum(m2 - m1[i] ** 2, 0.0))
+        sd[i, ncol < 3] = np.inf
+    np.fill_diagonal(sd, np.inf)
+    best = sd.min(1)
+    finite = np.isfinite(best)
+    if not finite.any():
+        return out
+    limit = 3.0 * float(np.median(best[finite])) + 1e-9 * float(np.median(m1[np.isfinite(sd)]))  # round-off
+    frames = np.arange(F)
+    for i in np.flatnonzero(~obs.all(1)):
+        partners = np.argsort(sd[i])
+        partners = partners[sd[i, partners] <= limit]
+        if partners.size < 2:
+            continue
+        for f in np.flatnonzero(~obs[i]):
+            V = partners[obs[partners, f]][:n_neighbours]
+            if V.size < 2:
+                continue
+            ref = np.flatnonzero(obs[i] & obs[V].all(0))
+            if ref.size == 0:
+                continue
+            ref = ref[np.argsort(np.abs(ref - f), kind="stable")][:n_ref]
+            preds = []
+            for g in ref.tolist():
+                a = z[V, g]
+                b = z[V, f]
+                ca, cb = a.mean(), b.mean()
+                rot = np.exp(1j * np.angle(np.sum(np.conj(a - ca) * (b - cb))))
+                preds.append(cb + rot * (z[i, g] - ca))
+            out[i, f] = np.mean(preds)
     return out
 
 

@@ -70,7 +70,7 @@ class StickMCMC(StickEstimator):
     n_launch : int
         Restricted Gibbs scans building a split-merge launch state.
     n_tree_moves : int
-        Rounds of sub-tree, path-reversal, swap and re-hang moves per sweep.
+        Rounds of sub-tree, path-reversal, swap, re-hang and re-attaching split-merge moves per sweep.
     init : "single" or int
         Start every chain from one stick, or from this many k-means clusters.
     n_starts : int
@@ -98,7 +98,7 @@ class StickMCMC(StickEstimator):
                  lambda_b: float = 1.0, update_kappa_nd: bool = True, kappa_nd_a: float = 1.0,
                  kappa_nd_b: float = 0.01, root_precision: float | str = "auto", n_aux: int = 5,
                  n_split_merge: int = 5, n_launch: int = 2, n_tree_moves: int = 2, init: str | int = "single",
-                 n_starts: int = 3, n_impute_samples: int = 20, impute_sweeps: int = 25, max_stored: int = 100,
+                 n_starts: int = 5, n_impute_samples: int = 20, impute_sweeps: int = 25, max_stored: int = 100,
                  progress: bool = False, random_state: Any = None) -> None:
         self.n_chains = n_chains
         self.n_sweeps = n_sweeps

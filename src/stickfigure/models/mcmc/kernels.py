@@ -41,7 +41,8 @@ Derivations and deviations from the printed equations
 * Precisions: ``s_x`` and ``s_yv`` given y and ``s_T`` given the children are Gamma;
   ``s_yh`` (which also sets the length) is slice sampled in log space with y
   integrated out.
-* Split-merge: see :func:`split_merge`.
+* Split-merge: see :func:`split_merge`; with re-attachment (the split's outer half or
+  the merged node hung from a new parent): :func:`reattach_move`.
 * Tree moves: the paper's sub-tree move (:func:`subtree_move`) and three we
   added because chains otherwise stay in trees described from the wrong end:
   :func:`rehang_move` (a sub-tree move that refits the moved root),
@@ -79,6 +80,7 @@ __all__ = [
     "node_loglik_matrix",
     "gibbs_indicators",
     "split_merge",
+    "reattach_move",
     "subtree_move",
     "reverse_path",
     "swap_move",
@@ -112,7 +114,7 @@ class SweepConfig:
     n_launch : int
         Intermediate restricted Gibbs scans building a split's launch state.
     n_subtree : int
-        Sub-tree moves per sweep.
+        Rounds of tree moves per sweep (sub-tree, path reversal, swap, re-hang, re-attaching split-merge).
     structure : bool
         Update indicators and the tree (False keeps them fixed: imputation on new frames).
     likelihood : bool
@@ -658,29 +660,39 @@ def _pair_pool(st: State, i: int) -> np.ndarray:
     return pool[pool != i]
 
 
-def _pair_logprob(st: State, i: int, j: int) -> float:
-    """log probability that :func:`_choose_pair` picks the ordered pair (i, j) in ``st``."""
+def _pair_logprob(st: State, i: int, j: int, by_node: bool = False) -> float:
+    """log probability that :func:`_choose_pair` (with ``by_node``) picks the ordered pair (i, j) in ``st``."""
     I = st.c.shape[0]
     pool = _pair_pool(st, i)
     if pool.size == 0:
         local = 1.0 / (I - 1)
     else:
         local = (1.0 / pool.size) if np.any(pool == j) else 0.0
+    if by_node:
+        if local == 0.0:
+            return -math.inf
+        return math.log(local / (st.K * np.count_nonzero(st.c == st.c[i])))
     return math.log(0.5 / (I * (I - 1)) + 0.5 * local / I)
 
 
-def _choose_pair(st: State, rng: np.random.Generator) -> tuple[int, int]:
+def _choose_pair(st: State, rng: np.random.Generator, by_node: bool = False) -> tuple[int, int]:
     """An ordered pair of points: half the time uniform, half the time j near i in the tree.
 
     Drawing j among the points of i's node and its neighbours makes merges of
     adjacent nodes (and splits of one node) far more frequent than uniform
     pairs do; the probability of the pair in both states enters the ratio.
+    With ``by_node``, i is drawn from a node drawn uniformly (so a one-point node
+    is picked as often as any other) and j always near i.
     """
     I = st.c.shape[0]
-    if rng.random() < 0.5:
+    if by_node:
+        members = np.flatnonzero(st.c == int(rng.integers(st.K)))
+        i = int(members[rng.integers(members.size)])
+    elif rng.random() < 0.5:
         i, j = (int(v) for v in rng.choice(I, size=2, replace=False))
         return i, j
-    i = int(rng.integers(I))
+    else:
+        i = int(rng.integers(I))
     pool = _pair_pool(st, i)
     if pool.size == 0:
         j = int(rng.integers(I - 1))
@@ -688,64 +700,108 @@ def _choose_pair(st: State, rng: np.random.Generator) -> tuple[int, int]:
     return i, int(pool[rng.integers(pool.size)])
 
 
+def _reattach_parents(st: State, nodes: list[int]) -> np.ndarray:
+    """Where a re-attaching move may hang ``nodes`` (one node, or the two halves of a split, which
+    share a parent or are parent and child): the root (-1) or any node outside their sub-trees,
+    their current parent excluded."""
+    A = ancestor_matrix(st.parent)
+    inside = A[:, nodes].any(1)
+    outer = [r for r in nodes if st.parent[r] not in nodes][0]
+    cand = np.concatenate([[-1], np.flatnonzero(~inside)])
+    return cand[cand != st.parent[outer]]
+
+
 def _propose_split(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg: SweepConfig,
-                   stats: MoveStats | None, i: int, j: int, k: int, current: float) -> tuple[State, float]:
+                   stats: MoveStats | None, i: int, j: int, k: int, current: float,
+                   p_out: int | None = None, by_node: bool = False) -> tuple[State, float]:
+    """Split node ``k`` (i to A, j to B); with ``p_out`` the split's outer node hangs from ``p_out``
+    instead of k's parent and the children's translations are redrawn (:func:`reattach_move`)."""
     kind = ("sib", "down", "up")[int(rng.integers(3))]
     x = data.x_proposal
     members = np.flatnonzero(st.c == k)
     S = members[(members != i) & (members != j)]
     kids = st.children(k)
-    J, s_par = _parent_of(st, hyper, int(st.parent[k]))
+    pk = int(st.parent[k])
+    moved = p_out is not None
+    po = pk if p_out is None else int(p_out)
+    J, s_par = _parent_of(st, hyper, po)
     pair = _Pair(kind, J, s_par, st.theta[kids], st.T[kids])
     in_b, lq_c, mA, mB = _restricted_scans(x, i, j, S, pair, hyper, cfg, rng)
     to_b, lq_h = _children_assign(pair, mA, mB, hyper, rng)
     a_pts = np.concatenate([[i], S[~in_b]])
     b_pts = np.concatenate([[j], S[in_b]])
     phiA, phiB, lq_ab = _pair_proposal(x[a_pts], x[b_pts], pair, to_b, hyper, rng)
-    _, lq_m = _node_proposal(x[members], J, s_par, pair.kids_T, hyper, rng, target=_phi(st, k))
     new = st.copy()
     _set_phi(new, k, phiA)
-    pk = int(st.parent[k])
-    b = new.add_node(k if kind == "down" else pk, *phiB)
+    b = new.add_node(k if kind == "down" else po, *phiB)
     new.c[b_pts] = b
     new.parent[kids[to_b]] = b
     if kind == "up":
         new.parent[k] = b
+    else:
+        new.parent[k] = po
+    log_q = 0.0
+    if moved:
+        # The outer node moved: its children follow by fresh translations, counted both ways;
+        # the reverse merge puts the merged node back under pk, proposing it given the
+        # children as they are after this split.
+        log_q += _redraw_translations(st, kids, x, hyper, None) - _redraw_translations(new, kids, x, hyper, rng)
+        log_q += math.log(_reattach_parents(st, [k]).size) - math.log(_reattach_parents(new, [k, b]).size)
+    J_m, s_m = _parent_of(st, hyper, pk)
+    _, lq_m = _node_proposal(x[members], J_m, s_m, new.T[kids], hyper, rng, target=_phi(st, k))
     proposed = _target(new, data, hyper, cfg)
-    log_ratio = (proposed - current - math.log(1.0 / 3.0) - lq_c - lq_h - lq_ab + lq_m
-                 + _pair_logprob(new, i, j) - _pair_logprob(st, i, j))
+    log_ratio = (proposed - current - math.log(1.0 / 3.0) - lq_c - lq_h - lq_ab + lq_m + log_q
+                 + _pair_logprob(new, i, j, by_node) - _pair_logprob(st, i, j, by_node))
     ok = math.log(rng.random()) < log_ratio
     if stats is not None:
-        stats.add(f"split_{kind}", ok)
+        stats.add(f"{'reattach_' if moved else ''}split_{kind}", ok)
     return (new, proposed) if ok else (st, current)
 
 
 def _propose_merge(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg: SweepConfig,
                    stats: MoveStats | None, i: int, j: int, a: int, b: int, kind: str,
-                   current: float) -> tuple[State, float]:
+                   current: float, p_in: int | None = None, by_node: bool = False) -> tuple[State, float]:
+    """Merge nodes ``a`` (holding i) and ``b`` (holding j); with ``p_in`` the merged node hangs from
+    ``p_in`` instead of the outer node's parent and its children's translations are redrawn
+    (:func:`reattach_move`)."""
     x = data.x_proposal
     kids_a = st.children(a)
     kids_b = st.children(b)
     kids_a = kids_a[kids_a != b]
     kids_b = kids_b[kids_b != a]
     kids = np.concatenate([kids_a, kids_b])
-    outer = int(st.parent[b]) if kind == "up" else int(st.parent[a])
+    outer_node = b if kind == "up" else a
+    outer = int(st.parent[outer_node])
+    moved = p_in is not None
+    pi = outer if p_in is None else int(p_in)
     J, s_par = _parent_of(st, hyper, outer)
-    pair = _Pair(kind, J, s_par, st.theta[kids], st.T[kids])
+    J_in, s_in = (J, s_par) if not moved else _parent_of(st, hyper, pi)
     members = np.flatnonzero((st.c == a) | (st.c == b))
-    phiK, lq_m = _node_proposal(x[members], J, s_par, pair.kids_T, hyper, rng)
+    phiK, lq_m = _node_proposal(x[members], J_in, s_in, st.T[kids], hyper, rng)
     new = st.copy()
     new.c[new.c == b] = a
     new.parent[kids_b] = a
-    new.parent[a] = outer
+    new.parent[a] = pi
     _set_phi(new, a, phiK)
     keep = np.ones(st.K, bool)
     keep[b] = False
     new.keep_nodes(keep)
+    log_q = 0.0
+    kids_T = st.T[kids]
+    if moved:
+        # Children follow the merged node by fresh translations (counted both ways); the
+        # reverse split hangs its outer node back under ``outer``, given the children as
+        # they are after this merge.
+        kids_new = kids - (kids > b)
+        log_q += _redraw_translations(st, kids, x, hyper, None) - _redraw_translations(new, kids_new, x, hyper, rng)
+        log_q += (math.log(_reattach_parents(st, [a, b]).size)
+                  - math.log(_reattach_parents(new, [a - (a > b)]).size))
+        kids_T = new.T[kids_new]
     proposed = _target(new, data, hyper, cfg)
     # The reverse split: allocation, children and both nodes' parameters as they are now.
     # Everything but the allocation's probability (log q_c <= 0, which needs the launch)
     # is computed first, so hopeless merges are rejected without building the launch.
+    pair = _Pair(kind, J, s_par, st.theta[kids], kids_T)
     S = members[(members != i) & (members != j)]
     in_b = st.c[S] == b
     a_pts = np.concatenate([[i], S[~in_b]])
@@ -755,15 +811,73 @@ def _propose_merge(st: State, data: Data, hyper: Hyper, rng: np.random.Generator
     _, lq_h = _children_assign(pair, mA, mB, hyper, rng, target=to_b)
     _, _, lq_ab = _pair_proposal(x[a_pts], x[b_pts], pair, to_b, hyper, rng, target=(_phi(st, a), _phi(st, b)))
     log_u = math.log(rng.random())
-    bound = (proposed - current + math.log(1.0 / 3.0) + lq_h + lq_ab - lq_m
-             + _pair_logprob(new, i, j) - _pair_logprob(st, i, j))
+    bound = (proposed - current + math.log(1.0 / 3.0) + lq_h + lq_ab - lq_m + log_q
+             + _pair_logprob(new, i, j, by_node) - _pair_logprob(st, i, j, by_node))
     ok = False
     if log_u < bound:
         _, lq_c, _, _ = _restricted_scans(x, i, j, S, pair, hyper, cfg, rng, target=in_b)
         ok = log_u < bound + lq_c
     if stats is not None:
-        stats.add(f"merge_{kind}", ok)
+        stats.add(f"{'reattach_' if moved else ''}merge_{kind}", ok)
     return (new, proposed) if ok else (st, current)
+
+
+def reattach_move(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg: SweepConfig,
+                  stats: MoveStats | None = None, current: float | None = None) -> tuple[State, float]:
+    """Split-merge with re-attachment: a merge whose merged node hangs elsewhere, or a split whose
+    outer half does (MH).
+
+    The pair ``(i, j)`` is drawn by :func:`_choose_pair` with ``by_node``: ``i`` from a node
+    drawn uniformly (a one-point node is chosen as often as any), ``j`` among the points
+    of i's node and its neighbours; its probability in both states enters the ratio.
+    If the two points share node
+    ``k``, k is split as there (kind uniform, the launch and restricted scans, the
+    children shared out, data-driven proposals of A and B), but the outer half (A, or
+    B for a chain-up split) hangs from a new parent drawn uniformly among the root
+    and the nodes outside k's sub-tree other than k's parent. If their nodes are
+    siblings or parent and child, they are merged as there, but the merged node hangs
+    from a new parent drawn the same way (outside the pair's sub-tree, its parent
+    excluded). In both directions the nodes created are proposed under the new
+    parent, and the children of the moved nodes get fresh translations from their
+    conditionals given the proposed state (:func:`_redraw_translations`), so they
+    follow. The two proposals are each other's reverse; the ratio holds the pair's
+    probability in both states, the kind (1/3 for a split), both parent choices (the
+    candidate sets have the same size: the same nodes lie outside the moved sub-tree),
+    the allocation and children's sharing-out, both nodes' proposal densities and the
+    children's translation densities, each computed both ways.
+
+    It moves a stick together with its points to a joint elsewhere in one step. A
+    chain can otherwise end with a stick attached through a one-point "connector"
+    stick that spans a neighbour (the connector's point cannot leave: an internal
+    singleton); undoing that needs the connector merged into its child and the merged
+    stick re-hung at the neighbour's end, and the state in between is far worse.
+    """
+    if current is None:
+        current = _target(st, data, hyper, cfg)
+    if data.n_points < 2:
+        return st, current
+    i, j = _choose_pair(st, rng, by_node=True)
+    ci, cj = int(st.c[i]), int(st.c[j])
+    if ci == cj:
+        cand = _reattach_parents(st, [ci])
+        if cand.size == 0:
+            return st, current
+        p_out = int(cand[rng.integers(cand.size)])
+        return _propose_split(st, data, hyper, rng, cfg, stats, i, j, ci, current, p_out=p_out, by_node=True)
+    if st.parent[ci] == st.parent[cj]:
+        kind = "sib"
+    elif st.parent[cj] == ci:
+        kind = "down"
+    elif st.parent[ci] == cj:
+        kind = "up"
+    else:
+        return st, current
+    cand = _reattach_parents(st, [ci, cj])
+    if cand.size == 0:
+        return st, current
+    p_in = int(cand[rng.integers(cand.size)])
+    return _propose_merge(st, data, hyper, rng, cfg, stats, i, j, ci, cj, kind, current, p_in=p_in,
+                          by_node=True)
 
 
 def _prior_target(st: State, hyper: Hyper) -> float:
@@ -1437,6 +1551,7 @@ def sweep(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, cfg: Sw
             st = reverse_path(st, data, hyper, rng, stats)
             st, _ = swap_move(st, data, hyper, rng, cfg, stats)
             st, _ = rehang_move(st, data, hyper, rng, cfg, stats)
+            st, _ = reattach_move(st, data, hyper, rng, cfg, stats)
     if lik and data.has_missing:
         # The structure moves above and this block target the posterior with the
         # missing entries integrated out (given y they drop out of the translation

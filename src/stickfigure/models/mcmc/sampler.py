@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from .data import initial_imputation, initial_state
+from .data import initial_state, rigid_imputation
 from .kernels import MoveStats, SweepConfig, polish_tree, sweep, update_kappa_nd
 from .model import Hyper, y_posterior
 from .state import Data, State, log_joint
@@ -62,7 +62,7 @@ class ChainSettings:
     init_size: int = 4
     anneal: float = 0.8
     beta0: float = 0.01
-    n_starts: int = 3
+    n_starts: int = 5
     polish: bool = True
 
 
@@ -149,7 +149,7 @@ def run_chain(z: np.ndarray, hyper: Hyper, cfg: SweepConfig, settings: ChainSett
     I = z.shape[0]
 
     def fresh() -> tuple[State, Data]:
-        data = Data(x=initial_imputation(z), observed=observed)
+        data = Data(x=rigid_imputation(z), observed=observed)
         if init is None:
             k0 = settings.init_clusters or max(1, int(round(I / settings.init_size)))
             return initial_state(data, hyper, rng, k0), data
