@@ -100,6 +100,12 @@ class EMSkeleton(StickEstimator):
         Rounds of articulated splits after that (a stick that is two parts joined
         at a joint becomes two sticks sharing a vertex, by BIC; docs/em.md
         section 6); 0 turns them off.
+    dissolve_points : int
+        After the merge search, every stick of the selected stage with at most this
+        many points is tried without it (its points moved to the sticks that explain
+        them best, its joints contracted into one, EM re-run); kept when the
+        selection criterion improves (Hartigan-style moves; docs/em.md section 6).
+        0 turns it off (the paper).
     tau_p, alpha0, beta0, max_precision : float
         Priors (normalised units: the data are centred and scaled to unit RMS
         spread): precision of the Gaussian prior on local coordinates; Gamma prior
@@ -121,7 +127,7 @@ class EMSkeleton(StickEstimator):
                  max_merges: int | None = None, merge_baseline: bool = True, n_polish: int = 3,
                  reuse_scores: bool = True, tol: float = 1e-4, min_stick_points: int = 3,
                  max_sticks: int | None = None, labels: Any = None, refine_sticks: bool = True,
-                 articulated_rounds: int = 4, tau_p: float = 1.0,
+                 articulated_rounds: int = 4, dissolve_points: int = 3, tau_p: float = 1.0,
                  alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e10, impute_iter: int = 100,
                  random_state: Any = None, progress: bool = False) -> None:
         self.n_iter = n_iter
@@ -144,6 +150,7 @@ class EMSkeleton(StickEstimator):
         self.labels = labels
         self.refine_sticks = refine_sticks
         self.articulated_rounds = articulated_rounds
+        self.dissolve_points = dissolve_points
         self.tau_p = tau_p
         self.alpha0 = alpha0
         self.beta0 = beta0
@@ -161,6 +168,7 @@ class EMSkeleton(StickEstimator):
         check_positive(self.resample_every, "resample_every", integer=True, allow_zero=True)
         check_positive(self.n_polish, "n_polish", integer=True, allow_zero=True)
         check_positive(self.articulated_rounds, "articulated_rounds", integer=True, allow_zero=True)
+        check_positive(self.dissolve_points, "dissolve_points", integer=True, allow_zero=True)
         check_positive(self.tol, "tol", allow_zero=True)
         for name in ("tau_p", "alpha0", "beta0", "max_precision"):
             check_positive(getattr(self, name), name)
@@ -184,6 +192,7 @@ class EMSkeleton(StickEstimator):
                               merge_baseline=bool(self.merge_baseline), n_polish=int(self.n_polish),
                               reuse_scores=bool(self.reuse_scores),
                               articulated_rounds=int(self.articulated_rounds),
+                              dissolve_points=int(self.dissolve_points),
                               endpoint_init=self.endpoint_init, n_ends=int(self.n_ends))
         priors = Priors(tau_p=float(self.tau_p), alpha0=float(self.alpha0), beta0=float(self.beta0),
                         max_precision=float(self.max_precision))
@@ -304,6 +313,7 @@ def _skeleton(stages: list[Stage], selected: int, norm: tuple[np.ndarray, float]
             "objective": s.objective, "bic": s.bic, "n_sticks": int(s.labels.max()) + 1,
             "labels": s.labels.tolist(), "vertex_of": s.vertex_of.tolist(), "edges": [list(e) for e in s.edges],
             "merged": None if s.merged is None else list(s.merged), "n_sweeps": s.n_sweeps,
+            "dissolved": s.dissolved,
             "ends_xy": (s.ends_xy * scale + centre).tolist(), "joints_xy": (s.joints_xy * scale + centre).tolist(),
         } for s in stages],
         "objective_stage": int(np.argmax([s.objective for s in stages])),

@@ -23,13 +23,16 @@ re-initialised from the new assignments (docs/em.md).
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
 from .initialise import initial_state
 from .model import Observations, Priors, StickState
 from .updates import em_sweep
 
-__all__ = ["noise_variance", "split_candidates", "join_candidates", "refine_labels"]
+__all__ = ["noise_variance", "split_candidates", "join_candidates", "refine_labels", "dissolve_stick",
+           "dissolve_small_sticks"]
 
 
 def _sfm_rss(obs: Observations, idx: np.ndarray, rng: np.random.Generator, n_iter: int = 60) -> float:
@@ -421,3 +424,104 @@ def apply_articulated_splits(st: StickState, obs: Observations, priors: Priors,
     out._quat = None
     update_endpoints(out)
     return out
+
+
+# ------------------------------------------------------------- dissolving small sticks
+def dissolve_stick(st: StickState, obs: Observations, priors: Priors, s: int) -> StickState:
+    """The model without stick ``s``: its points moved, its joints contracted into one.
+
+    Each point of ``s`` goes to the stick that explains its trajectory best with
+    its local coordinates refitted (:func:`assign.candidate_fits`, the posterior
+    mode of the resampling without ``s``). The vertices where ``s`` meets other
+    sticks become one vertex (the stick shrinks to a point, so its neighbours
+    now share a joint; contracting one stick of a tree leaves a tree). That
+    joint's endpoints start at the least-squares joint of their sticks
+    (:func:`structure.joint_least_squares`) and its precision as in a merge.
+    """
+    from .assign import candidate_fits, remove_sticks
+    from .model import chain_degree
+    from .structure import joint_least_squares
+    from .updates import update_endpoints
+
+    S, E = st.n_sticks, st.ends_per_stick
+    D, F = st.n_dims, st.n_frames
+    loc, sq = candidate_fits(st, obs, priors)
+    counts = np.bincount(st.labels, minlength=S).astype(float)
+    logp = np.log(np.maximum(counts, 1.0) / obs.n_points)[None, :] - 0.5 * st.tau_w * sq
+    logp[:, s] = -np.inf
+    pts = np.flatnonzero(st.labels == s)
+    new = np.argmax(logp[pts], axis=1)
+    out = st.copy()
+    out.labels[pts] = new
+    out.local[pts] = loc[pts, new]
+    cnt = st.vertex_counts()
+    own = st.vertex_of[E * s:E * (s + 1)]
+    joints = np.unique(own[cnt[own] >= 2])
+    a_cap = float(np.max(st.alpha[joints] / st.beta[joints])) if joints.size else 0.0
+    if joints.size >= 2:
+        out.vertex_of[np.isin(out.vertex_of, joints)] = joints[0]
+    out = remove_sticks(out, np.array([s]))
+    if joints.size >= 2:
+        # The contracted joint, in the new vertex numbering (remove_sticks keeps the order of
+        # the remaining endpoints).
+        old_v = st.vertex_of[np.repeat(np.arange(S) != s, E)]
+        jn = int(out.vertex_of[np.flatnonzero(np.isin(old_v, joints))[0]])
+        ends = np.flatnonzero(out.vertex_of == jn)
+        if ends.size >= 2:
+            k, _ = joint_least_squares(out, list(ends // E), list(out.ends[ends]), seen=out.design(obs).n)
+            out.ends[ends] = k
+            pred = (out.rot[ends // E] @ k[:, None, :, None])[..., 0] + out.trans[ends // E]
+            mu = pred.mean(axis=0)
+            ss = float(np.sum((pred - mu) ** 2))
+            n = float(ends.size)
+            a = min(D * F * n / max(ss, 1e-300), a_cap)
+            out.mu_v[jn] = mu
+            out.alpha[jn] = priors.alpha0 + 0.5 * D * F * n
+            out.beta[jn] = out.alpha[jn] / a
+            out.tau_v[jn] = a * n + out.tau_t * chain_degree(F)
+    out._design = None
+    out._quat = None
+    update_endpoints(out)
+    return out
+
+
+def dissolve_small_sticks(st: StickState, obs: Observations, priors: Priors, settings, rng: np.random.Generator,
+                          value: float, criterion: Callable[[StickState, float], float], max_points: int
+                          ) -> tuple[StickState, float, int, list[list[int]]]:
+    """Hartigan-style moves of whole small sticks: keep a dissolution when the criterion improves.
+
+    Every stick with at most ``max_points`` points (smallest first) is tried once:
+    :func:`dissolve_stick`, then an EM run (``settings.n_iter`` sweeps, resampling,
+    early stop) re-fits the model, and the result replaces the current one when
+    ``criterion(state, objective)`` (the selection's BIC or objective) is higher.
+    A 1-3 point stick made of points from the two parts beside a joint (a
+    clustering error that an articulated split or the resampling turned into a
+    stick of its own) fits its points almost exactly, so the objective alone
+    favours it; BIC charges its per-frame rotations.
+
+    Returns the state, its objective, the EM sweeps run, and the point sets of the
+    dissolved sticks.
+    """
+    from .structure import run_em
+
+    best = criterion(st, value)
+    tried: set[tuple[int, ...]] = set()
+    done: list[list[int]] = []
+    sweeps = 0
+    while st.n_sticks > 1:
+        sizes = np.bincount(st.labels, minlength=st.n_sticks)
+        todo = [int(s) for s in np.argsort(sizes, kind="stable") if sizes[s] <= max_points
+                and tuple(np.flatnonzero(st.labels == s)) not in tried]
+        if not todo:
+            break
+        s = todo[0]
+        key = tuple(np.flatnonzero(st.labels == s))
+        tried.add(key)
+        trial = dissolve_stick(st, obs, priors, s)
+        trial, val, n = run_em(trial, obs, priors, settings, settings.n_iter, rng)
+        sweeps += n
+        score = criterion(trial, val)
+        if score > best:
+            st, value, best = trial, val, score
+            done.append([int(p) for p in key])
+    return st, value, sweeps, done

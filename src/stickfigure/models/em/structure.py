@@ -87,6 +87,7 @@ class EMSettings:
     endpoint_init: str = "axis"
     n_ends: int = 3
     articulated_rounds: int = 4
+    dissolve_points: int = 3
 
 
 # ----------------------------------------------------------------------------- EM runs
@@ -676,6 +677,7 @@ class Stage:
     joints_xy: np.ndarray  # (J, D) vertex means at the reference frame
     state: StickState | None = None
     refinements: list = field(default_factory=list)
+    dissolved: list = field(default_factory=list)  # point sets of sticks dissolved (refine.dissolve_small_sticks)
 
 
 def _stage(st: StickState, obs: Observations, value: float, merged: tuple[int, int] | None, sweeps: int,
@@ -779,8 +781,27 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
         if progress:
             comp_s, _ = components(st)
             progress(k, k + int(comp_s.max()), val)
-    for crit in ("objective", "bic"):
-        stages[best[crit][1]].state = best[crit][2]
     if selection not in ("objective", "bic"):
         raise ValueError(f"selection must be 'objective' or 'bic', got {selection!r}")
+    if settings.dissolve_points:
+        # Hartigan-style moves of whole small sticks on the selected stage (docs/em.md section 6).
+        from .refine import dissolve_small_sticks
+
+        logN = float(np.log(obs.mask.sum() * obs.n_dims))
+
+        def criterion(s: StickState, v: float) -> float:
+            return v - 0.5 * n_parameters(s, obs) * logN if selection == "bic" else v
+
+        _, at, sel_st = best[selection]
+        new_st, val, sweeps, gone = dissolve_small_sticks(sel_st.copy(), obs, priors, settings, rng,
+                                                          stages[at].objective, criterion, settings.dissolve_points)
+        if gone:
+            stages.append(_stage(new_st, obs, val, None, sweeps, ref))
+            stages[-1].dissolved = gone
+            for crit in ("objective", "bic"):
+                v = getattr(stages[-1], crit)
+                if v > best[crit][0]:
+                    best[crit] = (v, len(stages) - 1, new_st.copy())
+    for crit in ("objective", "bic"):
+        stages[best[crit][1]].state = best[crit][2]
     return stages, best[selection][1]
