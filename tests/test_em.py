@@ -125,6 +125,7 @@ def test_save_load_and_impute_after_loading(tmp_path, chain, fitted):
     ({"n_iter": 0}, "n_iter"),
     ({"tol": -1.0}, "tol"),
     ({"dissolve_points": -1}, "dissolve_points"),
+    ({"max_frames": 2}, "max_frames"),
     ({"labels": [0, 1]}, "labels"),
 ])
 def test_bad_parameters(chain, bad, match):
@@ -193,3 +194,36 @@ def test_spurious_two_point_stick_is_dissolved(chain):
     assert _edges(sk, chain) == _true_edges(chain)
     assert sk.info["stages"][-1]["dissolved"] == [sorted([int(pa), int(pb)])]
     assert sk.info["selected_stage"] == len(sk.info["stages"]) - 1
+
+
+def test_structure_search_on_subsampled_frames(chain):
+    # max_frames: the search runs on 20 evenly spaced frames of 60; the selected structure is
+    # then re-fitted on all frames (motions for every frame, predictions at the noise level).
+    sk = sf.fit(chain, method="em", random_state=0, labels=chain.labels_true, n_iter=100, max_frames=20)
+    refit = sk.info["refit"]
+    assert refit["search_frames"] == 20 and refit["frames"] == chain.n_frames
+    assert sk.log_likelihood == refit["objective"]
+    assert sk.motions.shape == (3, chain.n_frames, 2, 4) and sk.joints.shape[1] == chain.n_frames
+    assert adjusted_rand_score(chain.labels_true, sk.labels) == 1.0
+    assert _edges(sk, chain) == _true_edges(chain)
+    rms = np.sqrt(np.nanmean((sk.predict() - chain.xy) ** 2))
+    assert rms < 2 * chain.meta["noise_std"]
+    full = sf.fit(chain, method="em", random_state=0, labels=chain.labels_true, n_iter=100, max_frames=None)
+    assert "refit" not in full.info
+    assert _edges(full, chain) == _true_edges(chain)
+
+
+def test_search_frames_keep_reference_and_every_point():
+    from stickfigure.models.em.structure import search_frames
+
+    mask = np.ones((3, 100), bool)
+    mask[0, 0] = False  # the reference frame (most points seen, the first such) is frame 1
+    fr = search_frames(mask, 10)
+    assert fr[0] == 0 and fr[-1] == 99 and 1 in fr and np.all(np.diff(fr) > 0)
+    mask[2] = False
+    mask[2, 37] = mask[2, 38] = True  # a point seen only off the even grid
+    fr = search_frames(mask, 10)
+    assert 37 in fr or 38 in fr
+    assert search_frames(mask, None) is None and search_frames(mask, 100) is None
+
+

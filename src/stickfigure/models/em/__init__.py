@@ -27,7 +27,8 @@ from ...trajectories import Trajectories
 from ..base import StickEstimator, register
 from .initialise import initial_state
 from .model import Observations, Priors, StickState, chain_degree, normalise
-from .structure import EMSettings, Stage, learn_structure, stick_edges
+from .structure import (EMSettings, Stage, extend_frames, learn_structure, n_parameters, run_em, search_frames,
+                        stick_edges)
 from .updates import complete_rotation, update_endpoints
 
 __all__ = ["EMSkeleton", "fit_stages"]
@@ -106,6 +107,10 @@ class EMSkeleton(StickEstimator):
         them best, its joints contracted into one, EM re-run); kept when the
         selection criterion improves (Hartigan-style moves; docs/em.md section 6).
         0 turns it off (the paper).
+    max_frames : int, optional
+        Run the structure search (EM, stick checks, merges) on at most this many
+        evenly spaced frames, then re-fit the selected structure on all frames
+        (docs/em.md section 6). None searches on every frame (the paper).
     tau_p, alpha0, beta0, max_precision : float
         Priors (normalised units: the data are centred and scaled to unit RMS
         spread): precision of the Gaussian prior on local coordinates; Gamma prior
@@ -127,7 +132,8 @@ class EMSkeleton(StickEstimator):
                  max_merges: int | None = None, merge_baseline: bool = True, n_polish: int = 3,
                  reuse_scores: bool = True, tol: float = 1e-4, min_stick_points: int = 3,
                  max_sticks: int | None = None, labels: Any = None, refine_sticks: bool = True,
-                 articulated_rounds: int = 4, dissolve_points: int = 3, tau_p: float = 1.0,
+                 articulated_rounds: int = 4, dissolve_points: int = 3, max_frames: int | None = 400,
+                 tau_p: float = 1.0,
                  alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e10, impute_iter: int = 100,
                  random_state: Any = None, progress: bool = False) -> None:
         self.n_iter = n_iter
@@ -151,6 +157,7 @@ class EMSkeleton(StickEstimator):
         self.refine_sticks = refine_sticks
         self.articulated_rounds = articulated_rounds
         self.dissolve_points = dissolve_points
+        self.max_frames = max_frames
         self.tau_p = tau_p
         self.alpha0 = alpha0
         self.beta0 = beta0
@@ -178,10 +185,12 @@ class EMSkeleton(StickEstimator):
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(map(repr, allowed))}, got {getattr(self, name)!r}")
-        for name in ("max_candidates", "max_merges", "max_sticks"):
+        for name in ("max_candidates", "max_merges", "max_sticks", "max_frames"):
             v = getattr(self, name)
             if v is not None:
                 check_positive(v, name, integer=True, allow_zero=name == "max_merges")
+        if self.max_frames is not None and self.max_frames < 10:
+            raise ValueError(f"max_frames must be None or >= 10, got {self.max_frames!r}")
         settings = EMSettings(n_iter=int(self.n_iter), n_iter_merge=int(self.n_iter_merge),
                               resample_every=int(self.resample_every), resample=self.resample,
                               min_stick_points=int(self.min_stick_points), merge_scope=self.merge_scope,
@@ -207,7 +216,7 @@ class EMSkeleton(StickEstimator):
         stages, selected, norm, info0 = fit_stages(traj, settings, priors, rng, labels=self.labels,
                                                    max_sticks=self.max_sticks, selection=self.selection,
                                                    endpoint_init=self.endpoint_init, n_ends=int(self.n_ends),
-                                                   progress=self.progress)
+                                                   progress=self.progress, max_frames=self.max_frames)
         return _skeleton(stages, selected, norm, info0, self.selection, traj)
 
     # ----------------------------------------------------------------- impute
@@ -247,10 +256,18 @@ class EMSkeleton(StickEstimator):
 # --------------------------------------------------------------------------- helpers
 def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np.random.Generator, *,
                labels: Any = None, max_sticks: int | None = None, selection: str = "bic",
-               endpoint_init: str = "axis", n_ends: int = 2, progress: bool = False
+               endpoint_init: str = "axis", n_ends: int = 2, progress: bool = False,
+               max_frames: int | None = None
                ) -> tuple[list[Stage], int, tuple[np.ndarray, float], dict[str, Any]]:
-    """Initialisation and the whole structure search; returns every stage and the selected one."""
-    obs, centre, scale = normalise(traj.xy)
+    """Initialisation and the whole structure search; returns every stage and the selected one.
+
+    With ``max_frames`` and more frames than that, the search runs on evenly spaced
+    frames and the selected stage's model is then re-fitted on all of them
+    (``info0["refit"]``); the other stages keep their values on the searched frames.
+    """
+    obs_all, centre, scale = normalise(traj.xy)
+    frames = search_frames(obs_all.mask > 0, max_frames)
+    obs = obs_all if frames is None else Observations(obs_all.w[:, frames], obs_all.mask[:, frames])
     P = traj.n_points
     info0: dict[str, Any] = {}
     if labels is None:
@@ -285,6 +302,20 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
     finally:
         if bar is not None:
             bar.close()
+    if frames is not None:
+        sel = stages[selected]
+        assert sel.state is not None
+        full = extend_frames(sel.state, obs_all, frames, priors)
+        full, value, sweeps = run_em(full, obs_all, priors, settings, settings.n_iter, rng)
+        N = float(obs_all.mask.sum() * obs_all.n_dims)
+        info0["refit"] = {"search_frames": int(frames.size), "frames": int(obs_all.n_frames),
+                          "objective": float(value),
+                          "bic": float(value - 0.5 * n_parameters(full, obs_all) * np.log(N)),
+                          "n_sweeps": int(sweeps), "labels_changed": int(np.sum(full.labels != sel.labels))}
+        sel.state = full
+        for s in stages:  # states on the searched frames only would not match the data any more
+            if s is not sel:
+                s.state = None
     info0["settings"] = asdict(settings)
     info0["priors"] = asdict(priors)
     return stages, selected, (centre, scale), info0
@@ -332,7 +363,9 @@ def _skeleton(stages: list[Stage], selected: int, norm: tuple[np.ndarray, float]
     }
     return Skeleton(method="em", labels=st.labels, n_sticks=S, edges=edges, joints=joints,
                     edge_joints=np.array([row[v] for v in verts], dtype=np.int64), motions=motions,
-                    local=st.local * scale, log_likelihood=stages[selected].objective, n_dims=D, state=state,
+                    local=st.local * scale,
+                    log_likelihood=info0.get("refit", {}).get("objective", stages[selected].objective), n_dims=D,
+                    state=state,
                     info=info)
 
 

@@ -61,7 +61,8 @@ from .model import Ghosts, Observations, Priors, StickState, chain_degree, objec
 from .updates import em_sweep, update_endpoints
 
 __all__ = ["EMSettings", "run_em", "components", "merge_candidates", "Candidate", "score_candidates",
-           "apply_merge", "learn_structure", "Stage", "stick_edges", "n_parameters"]
+           "apply_merge", "learn_structure", "Stage", "stick_edges", "n_parameters",
+           "search_frames", "extend_frames"]
 
 
 @dataclass(frozen=True)
@@ -805,3 +806,69 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
     for crit in ("objective", "bic"):
         stages[best[crit][1]].state = best[crit][2]
     return stages, best[selection][1]
+
+
+# ----------------------------------------------------------------- frame subsampling
+def search_frames(mask: np.ndarray, max_frames: int | None) -> np.ndarray | None:
+    """Frames for the structure search: ``max_frames`` evenly spaced ones (None: all frames).
+
+    The reference frame (most points visible, the first such) is always included,
+    so the stages' endpoint and joint positions are given in the same frame as
+    the full model's; and every point keeps at least one frame where it is seen.
+    """
+    F = mask.shape[1]
+    if max_frames is None or F <= max_frames:
+        return None
+    frames = set(np.unique(np.linspace(0, F - 1, max_frames).round().astype(int)).tolist())
+    frames.add(int(np.argmax(mask.sum(axis=0))))
+    for p in np.flatnonzero(~mask[:, sorted(frames)].any(axis=1)):
+        seen = np.flatnonzero(mask[p])
+        if seen.size:
+            frames.add(int(seen[seen.size // 2]))
+    return np.array(sorted(frames))
+
+
+def extend_frames(st: StickState, obs: Observations, frames: np.ndarray, priors: Priors) -> StickState:
+    """A model fitted on ``frames`` carried over to every frame of ``obs`` (a warm start for EM).
+
+    L, K, G, R and the precisions of the vertices are kept; rotations are
+    interpolated between the fitted frames (slerp), translations and vertex
+    means linearly; endpoint posteriors follow. The vertex chain's precision
+    ``tau_t`` is rescaled to the finer frame spacing (a random walk's step
+    variance is proportional to the time step).
+    """
+    from . import _interpolate_rotations
+    from .updates import update_endpoints
+
+    F = obs.n_frames
+    D = st.n_dims
+    good = np.zeros(F, bool)
+    good[frames] = True
+    f = np.arange(F)
+    out = st.copy()
+    rot = np.zeros((st.n_sticks, F, D, 3))
+    trans = np.zeros((st.n_sticks, F, D))
+    for s in range(st.n_sticks):
+        R = np.zeros((F, D, 3))
+        R[frames] = st.rot[s]
+        rot[s] = _interpolate_rotations(R, good)
+        for d in range(D):
+            trans[s, :, d] = np.interp(f, frames, st.trans[s, :, d])
+    mu_v = np.zeros((st.n_vertices, F, D))
+    for j in range(st.n_vertices):
+        for d in range(D):
+            mu_v[j, :, d] = np.interp(f, frames, st.mu_v[j, :, d])
+    out.rot, out.trans, out.mu_v = rot, trans, mu_v
+    n = st.vertex_counts()
+    a = st.alpha / st.beta
+    step = (F - 1) / max(frames.size - 1, 1)
+    out.tau_t = float(min(st.tau_t * step * step, priors.max_precision))
+    out.alpha = priors.alpha0 + 0.5 * D * F * n
+    out.beta = out.alpha / a
+    out.tau_v = (a * n)[:, None] + out.tau_t * chain_degree(F)[None, :]
+    out.mu_e = np.zeros((st.ends.shape[0], F, D))
+    out.ghosts = None
+    out._design = None
+    out._quat = None
+    update_endpoints(out)
+    return out
