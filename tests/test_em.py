@@ -227,3 +227,28 @@ def test_search_frames_keep_reference_and_every_point():
     assert search_frames(mask, None) is None and search_frames(mask, 100) is None
 
 
+
+def test_independent_bodies_stay_apart():
+    # Two rigid bodies moving independently: the merge search still joins them (one tree), but
+    # that joint is a loose vertex the data do not support as rigid, so it saves no parameters
+    # in BIC and the forest (no edge) is selected. Before, BIC credited the rigid-joint saving
+    # and selected the joined stage on this scene.
+    traj = sf.synthetic.rigid_bodies(n_bodies=2, frames=100, seed=0)
+    sk = sf.fit(traj, method="em", random_state=0)
+    stages = sk.info["stages"]
+    assert len(stages) == 2 and len(stages[1]["edges"]) == 1
+    assert sk.n_sticks == 2 and sk.edges == [] and sk.info["selected_stage"] == 0
+    assert stages[1]["bic"] < stages[0]["bic"]
+
+
+def test_true_joints_are_rigid(chain):
+    from stickfigure.models.em import fit_stages
+    from stickfigure.models.em.model import Priors, normalise
+    from stickfigure.models.em.structure import EMSettings, rigid_joints
+
+    stages, sel, _, _ = fit_stages(chain, EMSettings(n_iter=100), Priors(), np.random.default_rng(0),
+                                   labels=chain.labels_true)
+    st = stages[sel].state
+    obs, _, _ = normalise(chain.xy)
+    shared = np.bincount(st.vertex_of) >= 2
+    assert shared.sum() == 2 and rigid_joints(st, obs).all()
