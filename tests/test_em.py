@@ -252,3 +252,24 @@ def test_true_joints_are_rigid(chain):
     obs, _, _ = normalise(chain.xy)
     shared = np.bincount(st.vertex_of) >= 2
     assert shared.sum() == 2 and rigid_joints(st, obs).all()
+
+
+def test_jointed_pair_with_swapped_points_is_resplit(chain):
+    # Two jointed parts each given some of the other's points (the two farthest of one, the
+    # farthest of the other): with resampling off, EM and the merge search keep them (each
+    # stick's motion is fitted to its wrong points too). The pair re-split fits their union as
+    # one body and cuts it into two jointed pieces; that moves most of them back.
+    T = chain.labels_true
+    a, b = chain.edges_true[0]
+    dist = np.nanmean(np.linalg.norm(chain.xy - chain.joints_true[0][None], axis=-1), axis=1)
+    ia = np.flatnonzero(T == a)[np.argsort(dist[T == a])]
+    ib = np.flatnonzero(T == b)[np.argsort(dist[T == b])]
+    labels = T.copy()
+    labels[ia[-2:]] = b
+    labels[ib[-1:]] = a
+    kw = dict(random_state=0, labels=labels, resample_every=0, refine_sticks=False, n_iter=100, dissolve_points=0)
+    kept = sf.fit(chain, method="em", resplit=False, **kw)
+    assert adjusted_rand_score(T, kept.labels) < 0.75
+    sk = sf.fit(chain, method="em", **kw)
+    assert adjusted_rand_score(T, sk.labels) > 0.85
+    assert sk.info["stages"][-1]["moved"] >= 3 and sk.info["selected_stage"] == len(sk.info["stages"]) - 1

@@ -107,6 +107,12 @@ class EMSkeleton(StickEstimator):
         them best, its joints contracted into one, EM re-run); kept when the
         selection criterion improves (Hartigan-style moves; docs/em.md section 6).
         0 turns it off (the paper).
+    resplit : bool
+        Before that, every pair of jointed sticks of the selected stage is re-split:
+        their points fitted as one body and cut into the two pieces sharing a joint
+        that fit best; a different cut is kept when the selection criterion
+        improves after EM (moves groups of points that the resampling, with each
+        stick's motion fitted to its wrong points too, cannot). False: off.
     max_frames : int, optional
         Run the structure search (EM, stick checks, merges) on at most this many
         evenly spaced frames, then re-fit the selected structure on all frames
@@ -132,7 +138,8 @@ class EMSkeleton(StickEstimator):
                  max_merges: int | None = None, merge_baseline: bool = True, n_polish: int = 3,
                  reuse_scores: bool = True, tol: float = 1e-4, min_stick_points: int = 3,
                  max_sticks: int | None = None, labels: Any = None, refine_sticks: bool = True,
-                 articulated_rounds: int = 4, dissolve_points: int = 3, max_frames: int | None = 400,
+                 articulated_rounds: int = 4, dissolve_points: int = 3, resplit: bool = True,
+                 max_frames: int | None = 400,
                  tau_p: float = 1.0,
                  alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e10, impute_iter: int = 100,
                  random_state: Any = None, progress: bool = False) -> None:
@@ -157,6 +164,7 @@ class EMSkeleton(StickEstimator):
         self.refine_sticks = refine_sticks
         self.articulated_rounds = articulated_rounds
         self.dissolve_points = dissolve_points
+        self.resplit = resplit
         self.max_frames = max_frames
         self.tau_p = tau_p
         self.alpha0 = alpha0
@@ -201,7 +209,7 @@ class EMSkeleton(StickEstimator):
                               merge_baseline=bool(self.merge_baseline), n_polish=int(self.n_polish),
                               reuse_scores=bool(self.reuse_scores),
                               articulated_rounds=int(self.articulated_rounds),
-                              dissolve_points=int(self.dissolve_points),
+                              dissolve_points=int(self.dissolve_points), resplit=bool(self.resplit),
                               endpoint_init=self.endpoint_init, n_ends=int(self.n_ends))
         priors = Priors(tau_p=float(self.tau_p), alpha0=float(self.alpha0), beta0=float(self.beta0),
                         max_precision=float(self.max_precision))
@@ -344,7 +352,7 @@ def _skeleton(stages: list[Stage], selected: int, norm: tuple[np.ndarray, float]
             "objective": s.objective, "bic": s.bic, "n_sticks": int(s.labels.max()) + 1,
             "labels": s.labels.tolist(), "vertex_of": s.vertex_of.tolist(), "edges": [list(e) for e in s.edges],
             "merged": None if s.merged is None else list(s.merged), "n_sweeps": s.n_sweeps,
-            "dissolved": s.dissolved,
+            "dissolved": s.dissolved, "moved": s.moved,
             "ends_xy": (s.ends_xy * scale + centre).tolist(), "joints_xy": (s.joints_xy * scale + centre).tolist(),
         } for s in stages],
         "objective_stage": int(np.argmax([s.objective for s in stages])),

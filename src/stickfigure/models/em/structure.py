@@ -89,6 +89,7 @@ class EMSettings:
     n_ends: int = 3
     articulated_rounds: int = 4
     dissolve_points: int = 3
+    resplit: bool = True
 
 
 # ----------------------------------------------------------------------------- EM runs
@@ -743,6 +744,7 @@ class Stage:
     state: StickState | None = None
     refinements: list = field(default_factory=list)
     dissolved: list = field(default_factory=list)  # point sets of sticks dissolved (refine.dissolve_small_sticks)
+    moved: int = 0  # points moved by refine.resplit_pairs
 
 
 def _stage(st: StickState, obs: Observations, value: float, merged: tuple[int, int] | None, sweeps: int,
@@ -848,25 +850,36 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
             progress(k, k + int(comp_s.max()), val)
     if selection not in ("objective", "bic"):
         raise ValueError(f"selection must be 'objective' or 'bic', got {selection!r}")
-    if settings.dissolve_points:
-        # Hartigan-style moves of whole small sticks on the selected stage (docs/em.md section 6).
-        from .refine import dissolve_small_sticks
+    if settings.dissolve_points or settings.resplit:
+        # Hartigan-style moves of groups of points and of whole small sticks on the selected stage
+        # (docs/em.md section 6).
+        from .refine import dissolve_small_sticks, resplit_pairs
 
         logN = float(np.log(obs.mask.sum() * obs.n_dims))
 
         def criterion(s: StickState, v: float) -> float:
             return v - 0.5 * n_parameters(s, obs) * logN if selection == "bic" else v
 
-        _, at, sel_st = best[selection]
-        new_st, val, sweeps, gone = dissolve_small_sticks(sel_st.copy(), obs, priors, settings, rng,
-                                                          stages[at].objective, criterion, settings.dissolve_points)
-        if gone:
-            stages.append(_stage(new_st, obs, val, None, sweeps, ref))
+        _, at, cur = best[selection]
+        cur, val = cur.copy(), stages[at].objective
+        sweeps, gone, moved = 0, [], 0
+        if settings.resplit:
+            cur, val, sweeps, moved = resplit_pairs(cur, obs, priors, settings, rng, val, criterion)
+        if settings.dissolve_points:
+            cur, val, n, gone = dissolve_small_sticks(cur, obs, priors, settings, rng, val, criterion,
+                                                      settings.dissolve_points)
+            sweeps += n
+            if gone and settings.resplit:  # the points of a dissolved stick may sit better elsewhere
+                cur, val, n, m = resplit_pairs(cur, obs, priors, settings, rng, val, criterion)
+                sweeps, moved = sweeps + n, moved + m
+        if gone or moved:
+            stages.append(_stage(cur, obs, val, None, sweeps, ref))
             stages[-1].dissolved = gone
+            stages[-1].moved = moved
             for crit in ("objective", "bic"):
                 v = getattr(stages[-1], crit)
                 if v > best[crit][0]:
-                    best[crit] = (v, len(stages) - 1, new_st.copy())
+                    best[crit] = (v, len(stages) - 1, cur.copy())
     for crit in ("objective", "bic"):
         stages[best[crit][1]].state = best[crit][2]
     return stages, best[selection][1]
