@@ -141,10 +141,12 @@ def test_3d_data_is_rejected():
 
 def test_paper_variants_run(chain):
     # The paper's choices: two endpoints at the centroid, mean merge, whole-model scoring,
-    # fixed iteration counts, no baseline, no score reuse, no stick refinement.
+    # fixed iteration counts, no baseline, no score reuse, no stick refinement, no moves after the
+    # merge search, every frame searched.
     sk = sf.fit(chain, method="em", random_state=0, labels=chain.labels_true, n_ends=2,
                 endpoint_init="centroid", merge_init="mean", merge_scope="full", n_iter=40, n_iter_merge=10,
-                tol=0.0, merge_baseline=False, reuse_scores=False, refine_sticks=False)
+                tol=0.0, merge_baseline=False, reuse_scores=False, refine_sticks=False, resplit=False,
+                dissolve_points=0, max_frames=None)
     assert len(sk.info["stages"]) == 3
     assert sk.info["stages"][-1]["n_sticks"] == 3
     assert all(s["n_sweeps"] == 40 for s in sk.info["stages"])

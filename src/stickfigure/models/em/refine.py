@@ -488,13 +488,13 @@ def dissolve_stick(st: StickState, obs: Observations, priors: Priors, s: int) ->
 
 
 def dissolve_small_sticks(st: StickState, obs: Observations, priors: Priors, settings, rng: np.random.Generator,
-                          value: float, criterion: Callable[[StickState, float], float], max_points: int
-                          ) -> tuple[StickState, float, int, list[list[int]]]:
+                          value: float, criterion: Callable[[StickState, float], float], max_points: int,
+                          trial_iter: int | None = None) -> tuple[StickState, float, int, list[list[int]]]:
     """Hartigan-style moves of whole small sticks: keep a dissolution when the criterion improves.
 
     Every stick with at most ``max_points`` points (smallest first) is tried once:
-    :func:`dissolve_stick`, then an EM run (``settings.n_iter`` sweeps, resampling,
-    early stop) re-fits the model, and the result replaces the current one when
+    :func:`dissolve_stick`, then an EM run (``trial_iter`` sweeps, default
+    ``settings.n_iter``, resampling, early stop) re-fits the model, and the result replaces the current one when
     ``criterion(state, objective)`` (the selection's BIC or objective) is higher.
     A 1-3 point stick made of points from the two parts beside a joint (a
     clustering error that an articulated split or the resampling turned into a
@@ -507,6 +507,7 @@ def dissolve_small_sticks(st: StickState, obs: Observations, priors: Priors, set
     from .structure import run_em
 
     best = criterion(st, value)
+    trial_iter = settings.n_iter if trial_iter is None else trial_iter
     tried: set[tuple[int, ...]] = set()
     done: list[list[int]] = []
     sweeps = 0
@@ -520,7 +521,7 @@ def dissolve_small_sticks(st: StickState, obs: Observations, priors: Priors, set
         key = tuple(np.flatnonzero(st.labels == s))
         tried.add(key)
         trial = dissolve_stick(st, obs, priors, s)
-        trial, val, n = run_em(trial, obs, priors, settings, settings.n_iter, rng)
+        trial, val, n = run_em(trial, obs, priors, settings, trial_iter, rng)
         sweeps += n
         score = criterion(trial, val)
         if score > best:
@@ -533,7 +534,8 @@ def dissolve_small_sticks(st: StickState, obs: Observations, priors: Priors, set
 
 def resplit_pairs(st: StickState, obs: Observations, priors: Priors, settings, rng: np.random.Generator,
                   value: float, criterion: Callable[[StickState, float], float], *,
-                  suspect_ratio: float = 1.25) -> tuple[StickState, float, int, int]:
+                  suspect_ratio: float = 1.25, max_trials: int | None = None, trial_iter: int | None = None
+                  ) -> tuple[StickState, float, int, int]:
     """Moves of groups of points between two jointed sticks: the pair re-split as one stick.
 
     Two sticks beside a joint that each hold a few of the other's points (the
@@ -549,7 +551,8 @@ def resplit_pairs(st: StickState, obs: Observations, priors: Priors, settings, r
     corrected for the degrees of freedom of its fit, above ``suspect_ratio``
     times the robust noise variance of :func:`noise_variance`; measured on
     random figures: sticks holding points of two parts 1.4-3.5, clean sticks
-    0.95-1.34, mostly below 1.15), each once per point sets.
+    0.95-1.34, mostly below 1.15), the most suspect first, each once per point
+    sets, and at most ``max_trials`` (default: the number of sticks) in all.
     Returns the state, its objective, the EM sweeps run and the points moved.
     """
     from .assign import candidate_fits
@@ -557,7 +560,9 @@ def resplit_pairs(st: StickState, obs: Observations, priors: Priors, settings, r
 
     best = criterion(st, value)
     tried: set[tuple] = set()
-    sweeps = moved = 0
+    sweeps = moved = trials = 0
+    max_trials = st.n_sticks if max_trials is None else max_trials
+    trial_iter = settings.n_iter if trial_iter is None else trial_iter
     changed = True
     while changed:
         changed = False
@@ -567,10 +572,11 @@ def resplit_pairs(st: StickState, obs: Observations, priors: Priors, settings, r
         D = obs.n_dims
         dof = des.n.sum(axis=1) * D - (des.n > 0).sum(axis=1) * (3 + D) - 3 * np.bincount(st.labels,
                                                                                        minlength=st.n_sticks)
-        suspect = (dof > 0) & (rss > suspect_ratio * var * np.maximum(dof, 1))
-        for a, b in edges:
-            if not (suspect[a] or suspect[b]):
-                continue
+        ratio = np.where(dof > 0, rss / (var * np.maximum(dof, 1)), 0.0)
+        # The most suspect pairs first; at most max_trials fits in all (each costs an EM run).
+        for a, b in sorted(edges, key=lambda e: -max(ratio[e[0]], ratio[e[1]])):
+            if max(ratio[a], ratio[b]) <= suspect_ratio or trials >= max_trials:
+                break
             ia, ib = np.flatnonzero(st.labels == a), np.flatnonzero(st.labels == b)
             key = (tuple(ia), tuple(ib))
             if key in tried:
@@ -582,6 +588,7 @@ def resplit_pairs(st: StickState, obs: Observations, priors: Priors, settings, r
             for it in range(60):
                 em_sweep(one, sub, priors, global_rotations=it % 10 == 0, use_polar=it == 0)
             splits = articulated_split_candidates(one, sub, priors, var=var)
+            trials += 1
             if not splits:
                 continue
             second = splits[0][1].astype(bool)
@@ -597,10 +604,12 @@ def resplit_pairs(st: StickState, obs: Observations, priors: Priors, settings, r
             loc, _ = candidate_fits(st, obs, priors)
             trial.local[pts] = loc[pts, trial.labels[pts]]
             # The motions and joints first settle to the new point sets (a resampling right away
-            # would hand the points back to the old compromise motions), then the usual run.
+            # would hand the points back to the old compromise motions) and are compared with the
+            # current model after as many sweeps; only a promising cut gets the usual run.
             trial, _, n0 = run_em(trial, obs, priors, settings, 2 * settings.n_iter_merge, rng, resample=False)
-            trial, val, n = run_em(trial, obs, priors, settings, settings.n_iter, rng)
-            sweeps += n0 + n
+            trial, val, n = run_em(trial, obs, priors, settings, trial_iter, rng)
+            sweeps += n0
+            sweeps += n
             score = criterion(trial, val)
             # Kept only when points really moved (not for the objective's slow creep alone).
             if score > best and np.any(trial.labels[U] != st.labels[U]):
