@@ -217,7 +217,7 @@ def _split_block(st: StickState, obs: Observations, s: int, second: np.ndarray,
 
 def articulated_split_candidates(st: StickState, obs: Observations, priors: Priors, *, n_sweeps: int = 40,
                                  n_finalists: int = 5, max_frames: int = 240, skip: set[int] | None = None,
-                                 var: float | None = None) -> list[tuple[int, np.ndarray]]:
+                                 var: float | None = None, return_gain: bool = False) -> list[tuple]:
     """Sticks that are two parts joined by a joint: [(stick, 0/1 labels of its points)].
 
     The split check above needs two rigid halves of at least four points each
@@ -236,6 +236,7 @@ def articulated_split_candidates(st: StickState, obs: Observations, priors: Prio
     frames); the ``n_finalists`` best of each stick are fitted again for
     ``3 n_sweeps`` sweeps, and the best of those is kept when ``(RSS_one - RSS_two) / (2 sigma^2) > k/2 log N``.
     ``var``: the noise variance ``sigma^2`` (default: :func:`noise_variance` of ``st``).
+    ``return_gain``: also return each split's gain ``(RSS_one - RSS_two) / (2 sigma^2)``.
     """
     from .structure import _union
 
@@ -304,6 +305,8 @@ def articulated_split_candidates(st: StickState, obs: Observations, priors: Prio
         gain = gain - max(move[idx[second]].sum(), move[idx[~second]].sum())
         if gain > penalty_of(second.size) and (s not in best or gain > best[s][0]):
             best[s] = (gain, second.astype(np.int64))
+    if return_gain:
+        return [(s, halves, g) for s, (g, halves) in sorted(best.items())]
     return [(s, halves) for s, (_, halves) in sorted(best.items())]
 
 
@@ -487,13 +490,28 @@ def dissolve_stick(st: StickState, obs: Observations, priors: Priors, s: int) ->
     return out
 
 
+def _dissolve_loss(st: StickState, obs: Observations, priors: Priors, s: int) -> float:
+    """Loss of fit, in units of the noise (``RSS / (2 sigma^2)``), when the points of stick ``s``
+    move to their best other sticks with all motions fixed."""
+    from .assign import candidate_fits
+
+    rss, var = noise_variance(st, obs)
+    _, sq = candidate_fits(st, obs, priors)
+    pts = np.flatnonzero(st.labels == s)
+    other = np.delete(sq[pts], s, axis=1)
+    return float((other.min(axis=1).sum() - rss[s]) / (2.0 * var))
+
+
 def dissolve_small_sticks(st: StickState, obs: Observations, priors: Priors, settings, rng: np.random.Generator,
                           value: float, criterion: Callable[[StickState, float], float], max_points: int,
                           trial_iter: int | None = None) -> tuple[StickState, float, int, list[list[int]]]:
     """Hartigan-style moves of whole small sticks: keep a dissolution when the criterion improves.
 
-    Every stick with at most ``max_points`` points (smallest first) is tried once:
-    :func:`dissolve_stick`, then an EM run (``trial_iter`` sweeps, default
+    Every stick with at most ``max_points`` points (smallest first) is tried once,
+    unless moving its points with the motions fixed already loses more than
+    ``LOOSE_FACTOR`` (10) times the BIC charge of its rotations (``3F/2 log N``): a
+    real body segment's markers fit the other sticks far worse than that, and
+    the trial would cost an EM run. Then :func:`dissolve_stick`, then an EM run (``trial_iter`` sweeps, default
     ``settings.n_iter``, resampling, early stop) re-fits the model, and the result replaces the current one when
     ``criterion(state, objective)`` (the selection's BIC or objective) is higher.
     A 1-3 point stick made of points from the two parts beside a joint (a
@@ -506,8 +524,11 @@ def dissolve_small_sticks(st: StickState, obs: Observations, priors: Priors, set
     """
     from .structure import run_em
 
+    from .structure import LOOSE_FACTOR
+
     best = criterion(st, value)
     trial_iter = settings.n_iter if trial_iter is None else trial_iter
+    logN = float(np.log(obs.mask.sum() * obs.n_dims))
     tried: set[tuple[int, ...]] = set()
     done: list[list[int]] = []
     sweeps = 0
@@ -520,6 +541,11 @@ def dissolve_small_sticks(st: StickState, obs: Observations, priors: Priors, set
         s = todo[0]
         key = tuple(np.flatnonzero(st.labels == s))
         tried.add(key)
+        # Cheap test first: the points' fit on their best other sticks (motions fixed, local
+        # coordinates refitted) may lose at most LOOSE_FACTOR times the parameters saved
+        # (a real segment's points fit the other sticks far worse).
+        if _dissolve_loss(st, obs, priors, s) > LOOSE_FACTOR * 0.5 * 3 * obs.n_frames * logN:
+            continue
         trial = dissolve_stick(st, obs, priors, s)
         trial, val, n = run_em(trial, obs, priors, settings, trial_iter, rng)
         sweeps += n
@@ -587,11 +613,16 @@ def resplit_pairs(st: StickState, obs: Observations, priors: Priors, settings, r
             one = initial_state(sub, np.zeros(U.size, np.int64), 1, priors, rng, n_ends=2)
             for it in range(60):
                 em_sweep(one, sub, priors, global_rotations=it % 10 == 0, use_polar=it == 0)
-            splits = articulated_split_candidates(one, sub, priors, var=var)
+            splits = articulated_split_candidates(one, sub, priors, var=var, return_gain=True)
             trials += 1
             if not splits:
                 continue
             second = splits[0][1].astype(bool)
+            # The cut must fit the pair's points better than the two sticks do now (cheap test
+            # before the EM run): the union's one-body residual less the split's gain.
+            one_rss = float(one.design(sub).residual_sq(one.rot, one.trans, one.local)[0])
+            if one_rss - 2.0 * var * splits[0][2] >= rss[a] + rss[b]:
+                continue
             in_a = np.isin(U, ia)
             if (second & in_a).sum() > (~second & in_a).sum():
                 second = ~second
