@@ -27,8 +27,9 @@ from ...trajectories import Trajectories
 from ..base import StickEstimator, register
 from .initialise import fill_gaps, initial_state, interpolate_rotations
 from .model import Observations, Priors, StickState, chain_degree, normalise
-from .structure import EMSettings, Stage, learn_structure, stick_edges
-from .updates import FLAT_RATIO, complete_rotation, update_endpoints
+from .structure import (EMSettings, Stage, extend_frames, learn_structure, n_parameters, run_em, search_frames,
+                        stick_edges)
+from .updates import FLAT_RATIO, update_endpoints
 
 __all__ = ["EMSkeleton", "fit_stages"]
 
@@ -100,6 +101,22 @@ class EMSkeleton(StickEstimator):
         Rounds of articulated splits after that (a stick that is two parts joined
         at a joint becomes two sticks sharing a vertex, by BIC; docs/em.md
         section 6); 0 turns them off.
+    dissolve_points : int
+        After the merge search, every stick of the selected stage with at most this
+        many points is tried without it (its points moved to the sticks that explain
+        them best, its joints contracted into one, EM re-run); kept when the
+        selection criterion improves (Hartigan-style moves; docs/em.md section 6).
+        0 turns it off (the paper).
+    resplit : bool
+        Before that, every pair of jointed sticks of the selected stage is re-split:
+        their points fitted as one body and cut into the two pieces sharing a joint
+        that fit best; a different cut is kept when the selection criterion
+        improves after EM (moves groups of points that the resampling, with each
+        stick's motion fitted to its wrong points too, cannot). False: off.
+    max_frames : int, optional
+        Run the structure search (EM, stick checks, merges) on at most this many
+        evenly spaced frames, then re-fit the selected structure on all frames
+        (docs/em.md section 6). None searches on every frame (the paper).
     tau_p, alpha0, beta0, max_precision : float
         Priors (normalised units: the data are centred and scaled to unit RMS
         spread): precision of the Gaussian prior on local coordinates; Gamma prior
@@ -121,7 +138,9 @@ class EMSkeleton(StickEstimator):
                  max_merges: int | None = None, merge_baseline: bool = True, n_polish: int = 3,
                  reuse_scores: bool = True, tol: float = 1e-4, min_stick_points: int = 3,
                  max_sticks: int | None = None, labels: Any = None, refine_sticks: bool = True,
-                 articulated_rounds: int = 4, tau_p: float = 25.0,
+                 articulated_rounds: int = 4, dissolve_points: int = 3, resplit: bool = True,
+                 max_frames: int | None = 400,
+                 tau_p: float = 25.0,
                  alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e10, impute_iter: int = 100,
                  random_state: Any = None, progress: bool = False) -> None:
         self.n_iter = n_iter
@@ -144,6 +163,9 @@ class EMSkeleton(StickEstimator):
         self.labels = labels
         self.refine_sticks = refine_sticks
         self.articulated_rounds = articulated_rounds
+        self.dissolve_points = dissolve_points
+        self.resplit = resplit
+        self.max_frames = max_frames
         self.tau_p = tau_p
         self.alpha0 = alpha0
         self.beta0 = beta0
@@ -161,6 +183,7 @@ class EMSkeleton(StickEstimator):
         check_positive(self.resample_every, "resample_every", integer=True, allow_zero=True)
         check_positive(self.n_polish, "n_polish", integer=True, allow_zero=True)
         check_positive(self.articulated_rounds, "articulated_rounds", integer=True, allow_zero=True)
+        check_positive(self.dissolve_points, "dissolve_points", integer=True, allow_zero=True)
         check_positive(self.tol, "tol", allow_zero=True)
         for name in ("tau_p", "alpha0", "beta0", "max_precision"):
             check_positive(getattr(self, name), name)
@@ -170,10 +193,12 @@ class EMSkeleton(StickEstimator):
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(map(repr, allowed))}, got {getattr(self, name)!r}")
-        for name in ("max_candidates", "max_merges", "max_sticks"):
+        for name in ("max_candidates", "max_merges", "max_sticks", "max_frames"):
             v = getattr(self, name)
             if v is not None:
                 check_positive(v, name, integer=True, allow_zero=name == "max_merges")
+        if self.max_frames is not None and self.max_frames < 10:
+            raise ValueError(f"max_frames must be None or >= 10, got {self.max_frames!r}")
         settings = EMSettings(n_iter=int(self.n_iter), n_iter_merge=int(self.n_iter_merge),
                               resample_every=int(self.resample_every), resample=self.resample,
                               min_stick_points=int(self.min_stick_points), merge_scope=self.merge_scope,
@@ -184,6 +209,7 @@ class EMSkeleton(StickEstimator):
                               merge_baseline=bool(self.merge_baseline), n_polish=int(self.n_polish),
                               reuse_scores=bool(self.reuse_scores),
                               articulated_rounds=int(self.articulated_rounds),
+                              dissolve_points=int(self.dissolve_points), resplit=bool(self.resplit),
                               endpoint_init=self.endpoint_init, n_ends=int(self.n_ends))
         priors = Priors(tau_p=float(self.tau_p), alpha0=float(self.alpha0), beta0=float(self.beta0),
                         max_precision=float(self.max_precision))
@@ -198,7 +224,7 @@ class EMSkeleton(StickEstimator):
         stages, selected, norm, info0 = fit_stages(traj, settings, priors, rng, labels=self.labels,
                                                    max_sticks=self.max_sticks, selection=self.selection,
                                                    endpoint_init=self.endpoint_init, n_ends=int(self.n_ends),
-                                                   progress=self.progress)
+                                                   progress=self.progress, max_frames=self.max_frames)
         return _skeleton(stages, selected, norm, info0, self.selection, traj)
 
     # ----------------------------------------------------------------- impute
@@ -242,10 +268,18 @@ class EMSkeleton(StickEstimator):
 # --------------------------------------------------------------------------- helpers
 def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np.random.Generator, *,
                labels: Any = None, max_sticks: int | None = None, selection: str = "bic",
-               endpoint_init: str = "axis", n_ends: int = 2, progress: bool = False
+               endpoint_init: str = "axis", n_ends: int = 2, progress: bool = False,
+               max_frames: int | None = None
                ) -> tuple[list[Stage], int, tuple[np.ndarray, float], dict[str, Any]]:
-    """Initialisation and the whole structure search; returns every stage and the selected one."""
-    obs, centre, scale = normalise(traj.xy)
+    """Initialisation and the whole structure search; returns every stage and the selected one.
+
+    With ``max_frames`` and more frames than that, the search runs on evenly spaced
+    frames and the selected stage's model is then re-fitted on all of them
+    (``info0["refit"]``); the other stages keep their values on the searched frames.
+    """
+    obs_all, centre, scale = normalise(traj.xy)
+    frames = search_frames(obs_all.mask > 0, max_frames)
+    obs = obs_all if frames is None else Observations(obs_all.w[:, frames], obs_all.mask[:, frames])
     P = traj.n_points
     info0: dict[str, Any] = {}
     if labels is None:
@@ -278,6 +312,20 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
     finally:
         if bar is not None:
             bar.close()
+    if frames is not None:
+        sel = stages[selected]
+        assert sel.state is not None
+        full = extend_frames(sel.state, obs_all, frames, priors)
+        full, value, sweeps = run_em(full, obs_all, priors, settings, settings.n_iter, rng)
+        N = float(obs_all.mask.sum() * obs_all.n_dims)
+        info0["refit"] = {"search_frames": int(frames.size), "frames": int(obs_all.n_frames),
+                          "objective": float(value),
+                          "bic": float(value - 0.5 * n_parameters(full, obs_all) * np.log(N)),
+                          "n_sweeps": int(sweeps), "labels_changed": int(np.sum(full.labels != sel.labels))}
+        sel.state = full
+        for s in stages:  # states on the searched frames only would not match the data any more
+            if s is not sel:
+                s.state = None
     info0["settings"] = asdict(settings)
     info0["priors"] = asdict(priors)
     return stages, selected, (centre, scale), info0
@@ -363,6 +411,7 @@ def _skeleton(stages: list[Stage], selected: int, norm: tuple[np.ndarray, float]
             "objective": s.objective, "bic": s.bic, "n_sticks": int(s.labels.max()) + 1,
             "labels": s.labels.tolist(), "vertex_of": s.vertex_of.tolist(), "edges": [list(e) for e in s.edges],
             "merged": None if s.merged is None else list(s.merged), "n_sweeps": s.n_sweeps,
+            "dissolved": s.dissolved, "moved": s.moved,
             "ends_xy": (s.ends_xy * scale + centre).tolist(), "joints_xy": (s.joints_xy * scale + centre).tolist(),
         } for s in stages],
         "objective_stage": int(np.argmax([s.objective for s in stages])),
@@ -381,7 +430,9 @@ def _skeleton(stages: list[Stage], selected: int, norm: tuple[np.ndarray, float]
     }
     return Skeleton(method="em", labels=st.labels, n_sticks=S, edges=edges, joints=joints,
                     edge_joints=np.array([row[v] for v in verts], dtype=np.int64), motions=motions,
-                    local=st.local * scale, log_likelihood=stages[selected].objective, n_dims=D, state=state,
+                    local=st.local * scale,
+                    log_likelihood=info0.get("refit", {}).get("objective", stages[selected].objective), n_dims=D,
+                    state=state,
                     info=info)
 
 

@@ -82,7 +82,7 @@ def _translations(w: np.ndarray, m: np.ndarray, R: np.ndarray, local: np.ndarray
 
     w (n, F, D) with 0 where missing, m (n, F), R (F, D, 3), local (n, 3) -> (F, D).
     """
-    F, D = R.shape[0], R.shape[1]
+    D = R.shape[1]
     cnt = m.sum(axis=0)
     resid = w - np.einsum("fdk,nk->nfd", R, local)
     t = np.einsum("nfd,nf->fd", resid, m) / np.maximum(cnt, 1)[:, None]

@@ -199,7 +199,6 @@ def rigid_imputation(z: np.ndarray, n_neighbours: int = 4, n_ref: int = 3) -> np
     if not finite.any():
         return out
     limit = 3.0 * float(np.median(best[finite])) + 1e-9 * float(np.median(m1[np.isfinite(sd)]))  # round-off
-    frames = np.arange(F)
     for i in np.flatnonzero(~obs.all(1)):
         partners = np.argsort(sd[i])
         partners = partners[sd[i, partners] <= limit]
