@@ -174,6 +174,15 @@ def test_progress_bar_reports_stages(chain, capsys):
     assert "stage" in err and "objective" in err
 
 
+def _by_distance_to_first_joint(chain):
+    """The points of the first true joint's two parts, each part's nearest the joint first."""
+    T = chain.labels_true
+    a, b = chain.edges_true[0]
+    dist = np.nanmean(np.linalg.norm(chain.xy - chain.joints_true[0][None], axis=-1), axis=1)
+    return (np.flatnonzero(T == a)[np.argsort(dist[T == a], kind="stable")],
+            np.flatnonzero(T == b)[np.argsort(dist[T == b], kind="stable")])
+
+
 def test_spurious_two_point_stick_is_dissolved(chain):
     # Known answer: the point of each of two jointed parts nearest their joint is given a stick
     # of its own (what an articulated split of a misassigned point produces). Without
@@ -181,10 +190,8 @@ def test_spurious_two_point_stick_is_dissolved(chain):
     # Hartigan-style dissolution must give the points back to their parts (BIC charges the
     # 2-point stick's per-frame rotations, which only buy it a near-exact fit).
     T = chain.labels_true
-    a, b = chain.edges_true[0]
-    dist = np.nanmean(np.linalg.norm(chain.xy - chain.joints_true[0][None], axis=-1), axis=1)
-    pa = np.flatnonzero(T == a)[np.argmin(dist[T == a])]
-    pb = np.flatnonzero(T == b)[np.argmin(dist[T == b])]
+    ia, ib = _by_distance_to_first_joint(chain)
+    pa, pb = ia[0], ib[0]
     labels = T.copy()
     labels[[pa, pb]] = T.max() + 1
     kw = dict(random_state=0, labels=labels, resample_every=0, refine_sticks=False, n_iter=100)
@@ -263,9 +270,7 @@ def test_jointed_pair_with_swapped_points_is_resplit(chain):
     # one body and cuts it into two jointed pieces; that moves most of them back.
     T = chain.labels_true
     a, b = chain.edges_true[0]
-    dist = np.nanmean(np.linalg.norm(chain.xy - chain.joints_true[0][None], axis=-1), axis=1)
-    ia = np.flatnonzero(T == a)[np.argsort(dist[T == a])]
-    ib = np.flatnonzero(T == b)[np.argsort(dist[T == b])]
+    ia, ib = _by_distance_to_first_joint(chain)
     labels = T.copy()
     labels[ia[-2:]] = b
     labels[ib[-1:]] = a

@@ -638,15 +638,21 @@ def split_merge(st: State, data: Data, hyper: Hyper, rng: np.random.Generator, c
     ci, cj = int(st.c[i]), int(st.c[j])
     if ci == cj:
         return _propose_split(st, data, hyper, rng, cfg, stats, i, j, ci, current)
-    if st.parent[ci] == st.parent[cj]:
-        kind = "sib"
-    elif st.parent[cj] == ci:
-        kind = "down"
-    elif st.parent[ci] == cj:
-        kind = "up"
-    else:
+    kind = _merge_kind(st, ci, cj)
+    if kind is None:
         return st, current
     return _propose_merge(st, data, hyper, rng, cfg, stats, i, j, ci, cj, kind, current)
+
+
+def _merge_kind(st: State, ci: int, cj: int) -> str | None:
+    """How nodes ci and cj can merge: siblings, cj a child of ci, ci a child of cj; None otherwise."""
+    if st.parent[ci] == st.parent[cj]:
+        return "sib"
+    if st.parent[cj] == ci:
+        return "down"
+    if st.parent[ci] == cj:
+        return "up"
+    return None
 
 
 def _pair_pool(st: State, i: int) -> np.ndarray:
@@ -864,13 +870,8 @@ def reattach_move(st: State, data: Data, hyper: Hyper, rng: np.random.Generator,
             return st, current
         p_out = int(cand[rng.integers(cand.size)])
         return _propose_split(st, data, hyper, rng, cfg, stats, i, j, ci, current, p_out=p_out, by_node=True)
-    if st.parent[ci] == st.parent[cj]:
-        kind = "sib"
-    elif st.parent[cj] == ci:
-        kind = "down"
-    elif st.parent[ci] == cj:
-        kind = "up"
-    else:
+    kind = _merge_kind(st, ci, cj)
+    if kind is None:
         return st, current
     cand = _reattach_parents(st, [ci, cj])
     if cand.size == 0:
