@@ -86,6 +86,41 @@ def test_impute_new_frames_and_round_trip(fitted, arm, tmp_path):
     np.testing.assert_allclose(StickMCMC.impute_skeleton(back, occ), StickMCMC.impute_skeleton(sk, occ))
 
 
+def test_same_partition_is_label_free():
+    from stickfigure.models.mcmc.estimator import _same_partition
+
+    c = np.array([[0, 0, 1, 1, 2], [1, 1, 0, 0, 2], [0, 1, 1, 1, 2], [2, 2, 0, 0, 1], [0, 0, 1, 1, 1]])
+    np.testing.assert_array_equal(_same_partition(c, 0), [0, 1, 3])
+    np.testing.assert_array_equal(_same_partition(c, 2), [2])
+
+
+def test_impute_from_partition_drops_a_chain_on_another_segmentation(fitted, arm):
+    # Rewrite one stored draw's indicators as a different segmentation (its last point moved
+    # to the first point's stick): "partition" leaves that draw out, "all" averages it in.
+    import copy
+
+    from stickfigure.models.mcmc.estimator import _same_partition
+
+    sk = copy.copy(fitted.skeleton_)
+    sk.state = dict(sk.state)
+    c = sk.state["sample_c"].copy()
+    ref = int(sk.info["map"]["sample"])
+    other = (ref + 1) % c.shape[0]
+    c[other] = c[ref]
+    assert c[ref, -1] != c[ref, 0]
+    c[other, -1] = c[ref, 0]
+    sk.state["sample_c"] = c
+    pool = _same_partition(c, ref)
+    assert ref in pool and other not in pool
+    occ, _ = sf.synthetic.occlude(arm, seed=1)
+    sk.params = {**sk.params, "n_impute_samples": c.shape[0], "impute_sweeps": 2}
+    part = StickMCMC.impute_skeleton(sk, occ)
+    sk.params = {**sk.params, "impute_from": "all"}
+    every = StickMCMC.impute_skeleton(sk, occ)
+    assert not np.isnan(part).any() and not np.isnan(every).any()
+    assert not np.allclose(part, every)
+
+
 def test_impute_held_out_frames():
     """Ross et al.'s protocol: learn on the first 70% of the frames, fill the occluded rest."""
     t = sf.synthetic.arm(seed=2)
@@ -112,7 +147,8 @@ def test_three_dimensional_input_is_refused():
 
 
 @pytest.mark.parametrize("bad", [dict(n_chains=0), dict(n_sweeps=10, burn_in=10), dict(thin=0), dict(scale="big"),
-                                 dict(b_sx=-1.0), dict(init="many"), dict(kappa_rho=0.0), dict(n_jobs=0)])
+                                 dict(b_sx=-1.0), dict(init="many"), dict(kappa_rho=0.0), dict(n_jobs=0),
+                                 dict(impute_from="best")])
 def test_bad_parameters(arm, bad):
     with pytest.raises(ValueError):
         StickMCMC(**{**QUICK, **bad}).fit(arm)
