@@ -11,6 +11,8 @@ import stickfigure as sf
 from stickfigure.pipeline import learn
 from stickfigure.report import write_report
 
+from _video import paste_two_link_arm, write_video
+
 #: The method the pipeline tests fit end to end without help (no given segmentation): the paper's
 #: method for the known-answer test, the quickest one for the wiring test.
 END_TO_END = "em"
@@ -107,20 +109,12 @@ def _two_limb_video(path, n=60):
     bg = np.full((H, W), 35, np.uint8)
     tex = [cv2.GaussianBlur(rng.uniform(0, 255, (24, 90)).astype(np.float32), (0, 0), 1.6).astype(np.uint8)
            for _ in range(2)]
-    shoulder = SHOULDER
-    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), 20.0, (W, H))
+    frames = []
     for f in range(n):
         img = bg.copy()
-        a1, a2 = _arm_angles(f, n)
-        elbow = shoulder + 80 * np.array([np.cos(a1), np.sin(a1)])
-        for t, origin, ang in ((tex[0], shoulder, a1), (tex[1], elbow, a2)):
-            c, s = np.cos(ang), np.sin(ang)
-            M = np.array([[c, -s, origin[0] + 12 * s], [s, c, origin[1] - 12 * c]])
-            warped = cv2.warpAffine(t, M, (W, H), flags=cv2.INTER_LINEAR)
-            mask = cv2.warpAffine(np.full_like(t, 255), M, (W, H), flags=cv2.INTER_NEAREST) > 0
-            img[mask] = warped[mask]
-        w.write(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
-    w.release()
+        paste_two_link_arm(img, tex, SHOULDER, *_arm_angles(f, n))
+        frames.append(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
+    write_video(path, frames, fps=20.0)
     return path
 
 

@@ -9,6 +9,8 @@ import pytest
 import stickfigure as sf
 from stickfigure.track import best_window, track_video
 
+from _video import paste_two_link_arm, write_video
+
 W, H = 240, 180
 PATCH = 80  # side of the moving textured square
 VEL = np.array([1.3, 0.6])  # pixels per frame
@@ -62,12 +64,7 @@ def _frames(n: int, seed: int = 0, *, flicker: bool = False, cut_at: int | None 
 
 
 def _write(path, frames, fourcc: str) -> str:
-    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), 25.0, (W, H))
-    assert w.isOpened(), f"OpenCV cannot write {fourcc}"
-    for fr in frames:
-        w.write(fr)
-    w.release()
-    return str(path)
+    return write_video(path, frames, fourcc)
 
 
 @pytest.fixture(scope="module")
@@ -446,25 +443,13 @@ def _pan_then_arm_frames(seed: int = 0, pan_frames: int = PAN_FRAMES, arm_frames
         out.append(img)
     for f in range(arm_frames):
         img = np.full((VH, VW), 35, np.uint8)
-        a1, a2 = _arm_pose(f)
-        elbow = ARM_SHOULDER + 80 * np.array([np.cos(a1), np.sin(a1)])
-        for t, origin, ang in ((tex[0], ARM_SHOULDER, a1), (tex[1], elbow, a2)):
-            c, s = np.cos(ang), np.sin(ang)
-            M = np.array([[c, -s, origin[0] + 12 * s], [s, c, origin[1] - 12 * c]])
-            warped = cv2.warpAffine(t, M, (VW, VH), flags=cv2.INTER_LINEAR)
-            mask = cv2.warpAffine(np.full_like(t, 255), M, (VW, VH), flags=cv2.INTER_NEAREST) > 0
-            img[mask] = warped[mask]
+        paste_two_link_arm(img, tex, ARM_SHOULDER, *_arm_pose(f))
         out.append(img)
     return [cv2.cvtColor(im, cv2.COLOR_GRAY2BGR) for im in out]
 
 
 def write_pan_then_arm(path, **kw) -> str:
-    frames = _pan_then_arm_frames(**kw)
-    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), 25.0, (VW, VH))
-    for fr in frames:
-        w.write(fr)
-    w.release()
-    return str(path)
+    return write_video(path, _pan_then_arm_frames(**kw))
 
 
 @pytest.fixture(scope="module")
