@@ -279,7 +279,7 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
     """
     obs_all, centre, scale = normalise(traj.xy)
     frames = search_frames(obs_all.mask > 0, max_frames)
-    obs = obs_all if frames is None else Observations(obs_all.w[:, frames], obs_all.mask[:, frames])
+    obs = obs_all if frames is None else obs_all.take_frames(frames)
     P = traj.n_points
     info0: dict[str, Any] = {}
     if labels is None:

@@ -77,6 +77,9 @@ class Observations:
     def take(self, points: np.ndarray) -> "Observations":
         return Observations(self.w[points], self.mask[points])
 
+    def take_frames(self, frames: np.ndarray) -> "Observations":
+        return Observations(self.w[:, frames], self.mask[:, frames])
+
 
 def normalise(xy: np.ndarray) -> tuple[Observations, np.ndarray, float]:
     """Centre and scale trajectories so that priors are unit-free.

@@ -268,7 +268,7 @@ def articulated_split_candidates(st: StickState, obs: Observations, priors: Prio
     def penalty_of(n_s: int) -> float:
         return 0.5 * 3 * F * np.log(D * n_s) + 0.5 * 6 * np.log(N)
     sub = _frames(st, frames)
-    sobs = Observations(obs.w[:, frames], obs.mask[:, frames])
+    sobs = obs.take_frames(frames)
     res = (obs.w - st.point_predictions()) * obs.mask[..., None]
     point_rss = np.sum(res * res, axis=(1, 2))
     blocks, owners = [], []
