@@ -126,6 +126,7 @@ def test_save_load_and_impute_after_loading(tmp_path, chain, fitted):
     ({"tol": -1.0}, "tol"),
     ({"dissolve_points": -1}, "dissolve_points"),
     ({"max_frames": 2}, "max_frames"),
+    ({"oversegment": 0.5}, "oversegment"),
     ({"labels": [0, 1]}, "labels"),
 ])
 def test_bad_parameters(chain, bad, match):
@@ -248,6 +249,40 @@ def test_independent_bodies_stay_apart():
     assert len(stages) == 2 and len(stages[1]["edges"]) == 1
     assert sk.n_sticks == 2 and sk.edges == [] and sk.info["selected_stage"] == 0
     assert stages[1]["bic"] < stages[0]["bic"]
+
+
+def _benchmark_figure(seed: int) -> sf.Trajectories:
+    """The random 3D figure of benchmarks/bench_em.py for a scene seed."""
+    rng = np.random.default_rng(20_000 + seed)
+    return sf.synthetic.random_figure(n_sticks=int(rng.integers(3, 8)), frames=int(rng.integers(90, 181)),
+                                      noise=0.01, seed=seed, points_per_stick=(5, 9))
+
+
+def test_finer_start_recovers_parts_the_clustering_merged():
+    # Known answer: on this 3-part figure (15 points) the clustering's count is 2, and no move
+    # of the search splits the merged parts again (one stick fits them 1.4 times worse than
+    # the noise). The second start from ceil(15 / 3.5) = 5 groups finds the three parts and
+    # their tree, and its BIC is the higher, so it is kept.
+    traj = _benchmark_figure(2004)
+    one = sf.fit(traj, method="em", random_state=2004, oversegment=None)
+    assert one.n_sticks == 2 and "starts" not in one.info
+    sk = sf.fit(traj, method="em", random_state=2004)
+    starts = sk.info["starts"]
+    assert len(starts) == 2 and starts[1]["n_initial_sticks"] == 5
+    assert sk.info["start"] == int(np.argmax([s["bic"] for s in starts])) == 1
+    assert sk.info["first_start_misfit"] > 1.35
+    assert adjusted_rand_score(traj.labels_true, sk.labels) == 1.0
+    assert _edges(sk, traj) == _true_edges(traj)
+
+
+def test_no_second_start_when_every_stick_is_rigid():
+    # Every stick of the first search fits at the noise level (this 4-part figure is found
+    # exactly): the finer start, which could only add sticks, is not run.
+    traj = _benchmark_figure(4)
+    sk = sf.fit(traj, method="em", random_state=4)
+    assert "starts" not in sk.info and sk.info["first_start_misfit"] <= 1.35
+    assert adjusted_rand_score(traj.labels_true, sk.labels) == 1.0
+    assert _edges(sk, traj) == _true_edges(traj)
 
 
 def test_true_joints_are_rigid(chain):

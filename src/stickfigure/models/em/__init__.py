@@ -27,8 +27,9 @@ from ...trajectories import Trajectories
 from ..base import StickEstimator, register
 from .initialise import fill_gaps, initial_state, interpolate_rotations
 from .model import Observations, Priors, StickState, chain_degree, normalise
-from .structure import (EMSettings, Stage, extend_frames, learn_structure, n_parameters, run_em, search_frames,
+from .structure import (EMSettings, Stage, bic, extend_frames, learn_structure, run_em, search_frames,
                         stick_edges)
+from .refine import misfit_ratios
 from .updates import FLAT_RATIO, update_endpoints
 
 __all__ = ["EMSkeleton", "fit_stages"]
@@ -117,6 +118,17 @@ class EMSkeleton(StickEstimator):
         Run the structure search (EM, stick checks, merges) on at most this many
         evenly spaced frames, then re-fit the selected structure on all frames
         (docs/em.md section 6). None searches on every frame (the paper).
+    oversegment : float, optional
+        When the search leaves a stick that is not rigid (residual variance above
+        1.35 times the noise level) or sticks of more than 10 points on
+        average, run it again from a finer initial clustering
+        with ``ceil(P / oversegment)`` groups (at most ``max_sticks``; only when that
+        is more than the estimated count and than the sticks the first search
+        ended with) and keep the start whose selected stage has the higher BIC
+        (docs/em.md section 6). The eigengap count of the affine
+        rigidity affinity merges body segments of 1-3 markers (an affine body fits
+        any four trajectories), which no later move splits apart again. None: one
+        start (the paper).
     tau_p, alpha0, beta0, max_precision : float
         Priors (normalised units: the data are centred and scaled to unit RMS
         spread): precision of the Gaussian prior on local coordinates; Gamma prior
@@ -139,7 +151,7 @@ class EMSkeleton(StickEstimator):
                  reuse_scores: bool = True, tol: float = 1e-4, min_stick_points: int = 3,
                  max_sticks: int | None = None, labels: Any = None, refine_sticks: bool = True,
                  articulated_rounds: int = 4, dissolve_points: int = 3, resplit: bool = True,
-                 max_frames: int | None = 400,
+                 max_frames: int | None = 400, oversegment: float | None = 3.5,
                  tau_p: float = 25.0,
                  alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e10, impute_iter: int = 100,
                  random_state: Any = None, progress: bool = False) -> None:
@@ -166,6 +178,7 @@ class EMSkeleton(StickEstimator):
         self.dissolve_points = dissolve_points
         self.resplit = resplit
         self.max_frames = max_frames
+        self.oversegment = oversegment
         self.tau_p = tau_p
         self.alpha0 = alpha0
         self.beta0 = beta0
@@ -197,6 +210,8 @@ class EMSkeleton(StickEstimator):
             v = getattr(self, name)
             if v is not None:
                 check_positive(v, name, integer=True, allow_zero=name == "max_merges")
+        if self.oversegment is not None and not (np.isfinite(self.oversegment) and self.oversegment >= 1):
+            raise ValueError(f"oversegment must be None or a number >= 1, got {self.oversegment!r}")
         if self.max_frames is not None and self.max_frames < 10:
             raise ValueError(f"max_frames must be None or >= 10, got {self.max_frames!r}")
         settings = EMSettings(n_iter=int(self.n_iter), n_iter_merge=int(self.n_iter_merge),
@@ -224,7 +239,8 @@ class EMSkeleton(StickEstimator):
         stages, selected, norm, info0 = fit_stages(traj, settings, priors, rng, labels=self.labels,
                                                    max_sticks=self.max_sticks, selection=self.selection,
                                                    endpoint_init=self.endpoint_init, n_ends=int(self.n_ends),
-                                                   progress=self.progress, max_frames=self.max_frames)
+                                                   progress=self.progress, max_frames=self.max_frames,
+                                                   oversegment=self.oversegment)
         return _skeleton(stages, selected, norm, info0, self.selection, traj)
 
     # ----------------------------------------------------------------- impute
@@ -266,61 +282,106 @@ class EMSkeleton(StickEstimator):
 
 
 # --------------------------------------------------------------------------- helpers
+# A stick whose residual variance (corrected for its fit's degrees of freedom) exceeds the
+# robust noise variance by this factor holds points of more than one part (refine.misfit_ratios;
+# measured: right sticks of random figures 0.95-1.34, wrong ones 1.39-3.4, CMU 85_02 7.4).
+OVERSEGMENT_MISFIT = 1.35
+# ... or when its sticks hold more than this many points on average (HDM05's 41 markers in 4
+# sticks fit at 1.28: the lower quartile of 4 bad sticks is no noise level).
+OVERSEGMENT_SIZE = 10.0
+
+
 def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np.random.Generator, *,
                labels: Any = None, max_sticks: int | None = None, selection: str = "bic",
                endpoint_init: str = "axis", n_ends: int = 2, progress: bool = False,
-               max_frames: int | None = None
+               max_frames: int | None = None, oversegment: float | None = None
                ) -> tuple[list[Stage], int, tuple[np.ndarray, float], dict[str, Any]]:
     """Initialisation and the whole structure search; returns every stage and the selected one.
 
     With ``max_frames`` and more frames than that, the search runs on evenly spaced
     frames and the selected stage's model is then re-fitted on all of them
     (``info0["refit"]``); the other stages keep their values on the searched frames.
+    With ``oversegment``, when the first search leaves a stick that is not rigid
+    (:func:`refine.misfit_ratios` above ``OVERSEGMENT_MISFIT``) or sticks of more
+    than ``OVERSEGMENT_SIZE`` points on average, a second search
+    starts from ``ceil(P / oversegment)`` groups and the start whose selected stage
+    has the higher BIC (on the same frames) is kept (``info0["starts"]``).
     """
     obs_all, centre, scale = normalise(traj.xy)
     frames = search_frames(obs_all.mask > 0, max_frames)
     obs = obs_all if frames is None else obs_all.take_frames(frames)
     P = traj.n_points
     info0: dict[str, Any] = {}
+    starts = []
     if labels is None:
         ms = max_sticks if max_sticks is not None else int(max(2, min(20, P // 3)))
         labels, ap = _initial_groups(traj, ms, rng)
         info0["initial_clustering"] = {k: v for k, v in ap.items() if isinstance(v, (int, float, str, type(None)))}
+        starts.append(labels)
+        fine = min(int(np.ceil(P / oversegment)), ms) if oversegment is not None else 0
+        if fine > int(labels.max()) + 1:
+            starts.append(_initial_groups(traj, ms, rng, n_segments=fine)[0])
     else:
         labels = check_labels(labels, P, "labels")
         if (labels < 0).any():
             raise ValueError("labels must assign every point to a stick (no -1)")
-    _, labels = np.unique(labels, return_inverse=True)
-    S = int(labels.max()) + 1
+        starts.append(labels)
+    runs = []
+    for labels in starts:
+        _, labels = np.unique(labels, return_inverse=True)
+        S = int(labels.max()) + 1
+        st = initial_state(obs, labels, S, priors, rng, endpoint_init=endpoint_init, n_ends=n_ends)
+        bar = None
+        cb = None
+        if progress:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=max(S - 1, 1), desc=f"em merges (start {len(runs) + 1} of {len(starts)})",
+                       unit="stage")
+
+            def cb(k: int, n: int, value: float, bar: Any = bar) -> None:
+                bar.total = max(n, 1)
+                bar.n = k
+                bar.set_postfix_str(f"stage {k} of {n}, objective {value:.6g}")
+                bar.refresh()
+
+        try:
+            stages, selected = learn_structure(st, obs, priors, settings, rng, selection=selection, progress=cb)
+        finally:
+            if bar is not None:
+                bar.close()
+        runs.append((stages, selected, S))
+        if len(runs) == 1 and len(starts) > 1:
+            # The finer start only where the first leaves a stick that is not rigid: every
+            # stick fitting at the noise level means the clustering found the parts.
+            # With a few large sticks the noise level (lower quartile over sticks) is itself
+            # inflated, so more than OVERSEGMENT_SIZE points per stick also qualify.
+            worst = float(misfit_ratios(stages[selected].state, obs).max())
+            info0["first_start_misfit"] = worst
+            n_first = int(stages[selected].labels.max()) + 1
+            if worst <= OVERSEGMENT_MISFIT and P <= OVERSEGMENT_SIZE * n_first:
+                break
+            # A start is only finer if it has more groups than the first search ended with sticks.
+            if fine <= n_first:
+                break
+    # Starts are compared by BIC whatever the selection: the objective has no charge for the
+    # per-frame motions, so it always prefers the start with more sticks.
+    best = int(np.argmax([r[0][r[1]].bic for r in runs]))
+    stages, selected, S = runs[best]
     info0["n_initial_sticks"] = S
-    st = initial_state(obs, labels, S, priors, rng, endpoint_init=endpoint_init, n_ends=n_ends)
-    bar = None
-    cb = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=max(S - 1, 1), desc="em merges", unit="stage")
-
-        def cb(k: int, n: int, value: float) -> None:
-            bar.total = max(n, 1)
-            bar.n = k
-            bar.set_postfix_str(f"stage {k} of {n}, objective {value:.6g}")
-            bar.refresh()
-
-    try:
-        stages, selected = learn_structure(st, obs, priors, settings, rng, selection=selection, progress=cb)
-    finally:
-        if bar is not None:
-            bar.close()
+    if len(runs) > 1:
+        info0["starts"] = [{"n_initial_sticks": int(k), "n_sticks": int(stg[sel].labels.max()) + 1,
+                            "bic": float(stg[sel].bic), "objective": float(stg[sel].objective)}
+                           for stg, sel, k in runs]
+        info0["start"] = best
     if frames is not None:
         sel = stages[selected]
         assert sel.state is not None
         full = extend_frames(sel.state, obs_all, frames, priors)
         full, value, sweeps = run_em(full, obs_all, priors, settings, settings.n_iter, rng)
-        N = float(obs_all.mask.sum() * obs_all.n_dims)
         info0["refit"] = {"search_frames": int(frames.size), "frames": int(obs_all.n_frames),
                           "objective": float(value),
-                          "bic": float(value - 0.5 * n_parameters(full, obs_all) * np.log(N)),
+                          "bic": bic(full, obs_all, value),
                           "n_sweeps": int(sweeps), "labels_changed": int(np.sum(full.labels != sel.labels))}
         sel.state = full
         for s in stages:  # states on the searched frames only would not match the data any more
@@ -349,7 +410,8 @@ def _rigid_bic_terms(xy: np.ndarray, labels: np.ndarray) -> tuple[float, float, 
     return rss, k, float(obs.sum() * D)
 
 
-def _initial_groups(traj: Trajectories, max_segments: int, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
+def _initial_groups(traj: Trajectories, max_segments: int, rng: np.random.Generator, n_segments: int | None = None
+                    ) -> tuple[np.ndarray, dict]:
     """Affinity Propagation groups; with missing data also from the gap-interpolated trajectories.
 
     The rigid-subspace affinity completes gaps by a low-rank fit, which with sparse
@@ -361,29 +423,30 @@ def _initial_groups(traj: Trajectories, max_segments: int, rng: np.random.Genera
     where at least half of the entries are observed both groupings are made and the
     one with the lower BIC of per-group affine fits to the observed entries is kept
     (with sparse data those fits are undetermined; the interpolated grouping is used).
-    The EM itself sees the observations only.
+    The EM itself sees the observations only. ``n_segments`` fixes the count
+    instead of estimating it.
     """
     from ...segmentation import affinity_propagation_segments
 
     if traj.observed.all():
-        return affinity_propagation_segments(traj.xy, max_segments=max_segments, random_state=rng,
-                                             return_info=True)
+        return affinity_propagation_segments(traj.xy, max_segments=max_segments, n_segments=n_segments,
+                                             random_state=rng, return_info=True)
     seed = int(rng.integers(2**31 - 1))
     filled = fill_gaps(traj.xy)
-    lab_f, info_f = affinity_propagation_segments(filled, max_segments=max_segments, random_state=seed,
-                                                  return_info=True)
+    lab_f, info_f = affinity_propagation_segments(filled, max_segments=max_segments, n_segments=n_segments,
+                                                  random_state=seed, return_info=True)
     info_f = {**info_f, "input": "gaps interpolated"}
     if traj.observed.mean() < 0.5:
         return lab_f, info_f
-    lab_r, info_r = affinity_propagation_segments(traj.xy, max_segments=max_segments, random_state=seed,
-                                                  return_info=True)
+    lab_r, info_r = affinity_propagation_segments(traj.xy, max_segments=max_segments, n_segments=n_segments,
+                                                  random_state=seed, return_info=True)
     if np.array_equal(lab_r, lab_f):
         return lab_f, info_f
     terms = [_rigid_bic_terms(traj.xy, lab) for lab in (lab_f, lab_r)]
     N = terms[0][2]
     sig2 = min(r / max(N - k, 1.0) for r, k, _ in terms)
-    bic = [r / (2.0 * max(sig2, 1e-300)) + 0.5 * k * np.log(N) for r, k, _ in terms]
-    if bic[1] < bic[0]:
+    cost = [r / (2.0 * max(sig2, 1e-300)) + 0.5 * k * np.log(N) for r, k, _ in terms]
+    if cost[1] < cost[0]:
         return lab_r, {**info_r, "input": "gaps as given"}
     return lab_f, info_f
 

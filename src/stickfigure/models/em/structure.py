@@ -61,7 +61,7 @@ from .model import Ghosts, Observations, Priors, StickState, chain_degree, objec
 from .updates import em_sweep, update_endpoints
 
 __all__ = ["EMSettings", "run_em", "components", "merge_candidates", "Candidate", "score_candidates",
-           "apply_merge", "learn_structure", "Stage", "stick_edges", "n_parameters",
+           "apply_merge", "learn_structure", "Stage", "stick_edges", "n_parameters", "bic",
            "rigid_joints", "search_frames", "extend_frames"]
 
 
@@ -681,6 +681,11 @@ def n_parameters(st: StickState, obs: Observations) -> int:
     return int(3 * st.n_sticks * F + D * F * trees + 3 * obs.n_points + 3 * in_joint.sum() + 3)
 
 
+def bic(st: StickState, obs: Observations, value: float) -> float:
+    """The selection criterion ``value - n_parameters / 2 log N`` (N observed coordinates)."""
+    return float(value - 0.5 * n_parameters(st, obs) * np.log(obs.mask.sum() * obs.n_dims))
+
+
 LOOSE_FACTOR = 10.0
 
 
@@ -749,10 +754,8 @@ class Stage:
 
 def _stage(st: StickState, obs: Observations, value: float, merged: tuple[int, int] | None, sweeps: int,
            ref: int) -> Stage:
-    N = float(obs.mask.sum() * obs.n_dims)
-    bic = value - 0.5 * n_parameters(st, obs) * np.log(N)
     edges, _ = stick_edges(st)
-    return Stage(objective=value, bic=float(bic), labels=st.labels.copy(), vertex_of=st.vertex_of.copy(),
+    return Stage(objective=value, bic=bic(st, obs, value), labels=st.labels.copy(), vertex_of=st.vertex_of.copy(),
                  edges=edges, merged=merged, n_sweeps=sweeps, ends_xy=st.mu_e[:, ref].copy(),
                  joints_xy=st.mu_v[:, ref].copy())
 
@@ -855,10 +858,8 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
         # (docs/em.md section 6).
         from .refine import dissolve_small_sticks, resplit_pairs
 
-        logN = float(np.log(obs.mask.sum() * obs.n_dims))
-
         def criterion(s: StickState, v: float) -> float:
-            return v - 0.5 * n_parameters(s, obs) * logN if selection == "bic" else v
+            return bic(s, obs, v) if selection == "bic" else v
 
         _, at, cur = best[selection]
         cur, val = cur.copy(), stages[at].objective
