@@ -27,9 +27,9 @@ from ...trajectories import Trajectories
 from ..base import StickEstimator, register
 from .initialise import fill_gaps, initial_state, interpolate_rotations
 from .model import Observations, Priors, StickState, chain_degree, normalise
+from .refine import misfit_ratios
 from .structure import (EMSettings, Stage, bic, extend_frames, learn_structure, run_em, search_frames,
                         stick_edges)
-from .refine import misfit_ratios
 from .updates import FLAT_RATIO, update_endpoints
 
 __all__ = ["EMSkeleton", "fit_stages"]
