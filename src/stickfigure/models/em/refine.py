@@ -31,7 +31,7 @@ from .initialise import initial_state
 from .model import Observations, Priors, StickState
 from .updates import MIN_ROTATION_POINTS, em_sweep
 
-__all__ = ["motion_parameters", "noise_variance", "misfit_ratios", "split_candidates", "join_candidates",
+__all__ = ["motion_parameters", "fit_dof", "noise_variance", "misfit_ratios", "split_candidates", "join_candidates",
            "refine_labels", "dissolve_stick", "dissolve_small_sticks", "resplit_pairs"]
 
 
@@ -64,6 +64,14 @@ def motion_parameters(st: StickState, obs: Observations) -> np.ndarray:
     return np.sum(obs.n_dims * (n >= 1) + 3 * (rot & (n >= 1)), axis=1).astype(float)
 
 
+def fit_dof(st: StickState, obs: Observations) -> np.ndarray:
+    """Degrees of freedom left by every stick's fit, shape (S,): its observed coordinates less
+    :func:`motion_parameters` and 3 local coordinates per point (a rigid stick's expected RSS is
+    ``sigma^2`` times this)."""
+    return (obs.n_dims * st.design(obs).n.sum(axis=1) - motion_parameters(st, obs)
+            - 3 * np.bincount(st.labels, minlength=st.n_sticks))
+
+
 def noise_variance(st: StickState, obs: Observations) -> tuple[np.ndarray, float]:
     """Per-stick residual sums of squares (S,) and a robust noise variance per coordinate.
 
@@ -75,9 +83,8 @@ def noise_variance(st: StickState, obs: Observations) -> tuple[np.ndarray, float
     """
     des = st.design(obs)
     rss = des.residual_sq(st.rot, st.trans, st.local)
-    D = obs.n_dims
-    n = des.n.sum(axis=1) * D
-    dof = n - motion_parameters(st, obs) - 3 * np.bincount(st.labels, minlength=st.n_sticks)
+    n = des.n.sum(axis=1) * obs.n_dims
+    dof = fit_dof(st, obs)
     ok = dof > 0
     var = float(np.quantile(rss[ok] / dof[ok], 0.25)) if ok.any() else float(rss.sum() / max(n.sum(), 1))
     return rss, max(var, 1e-300)
@@ -276,10 +283,8 @@ def articulated_split_candidates(st: StickState, obs: Observations, priors: Prio
     _, sq = candidate_fits(st, obs, priors)
     own = sq[np.arange(obs.n_points), st.labels]
     other = np.where(np.arange(st.n_sticks)[None, :] == st.labels[:, None], np.inf, sq).min(axis=1)
-    # The fit's expected RSS is sigma^2 times its degrees of freedom (coordinates less the
-    # motion and shape parameters), not times the coordinates.
-    dof = D * st.design(obs).n.sum(axis=1) - motion_parameters(st, obs) - 3 * np.bincount(
-        st.labels, minlength=st.n_sticks)
+    # The fit's expected RSS is sigma^2 times its degrees of freedom, not times the coordinates.
+    dof = fit_dof(st, obs)
     blocks, owners = [], []
     for s in range(st.n_sticks):
         if skip and s in skip:
@@ -595,7 +600,6 @@ def misfit_ratios(st: StickState, obs: Observations) -> np.ndarray:
     dof = des.n.sum(axis=1) * D - (des.n > 0).sum(axis=1) * (3 + D) - 3 * np.bincount(st.labels,
                                                                                       minlength=st.n_sticks)
     return np.where(dof > 0, rss / (var * np.maximum(dof, 1)), 0.0)
-
 
 
 def resplit_pairs(st: StickState, obs: Observations, priors: Priors, settings, rng: np.random.Generator,
