@@ -154,12 +154,24 @@ def test_newton_derivatives_match_finite_differences():
     eps = 1e-5
     g = np.stack([(f(eps * np.eye(3)[k][None].repeat(3, 0)) - f(-eps * np.eye(3)[k][None].repeat(3, 0))) / (2 * eps)
                   for k in range(3)], -1)
-    # The analytic gradient: g = vee(C P - P C) - 2 vee(N)
-    P = np.swapaxes(R0, 1, 2) @ R0
-    N = np.swapaxes(C_ab, 1, 2) @ R0
-    CP = C_bb @ P
-    g_an = U._vee(CP - np.swapaxes(CP, 1, 2)) - 2 * U._vee(N)
+    g_an, H_an = U.newton_model(R0, C_ab, C_bb)
     np.testing.assert_allclose(g_an, g, rtol=1e-5, atol=1e-6)
+    # The Hessian (closed form of T = tr(P K_a C K_b)) against second differences.
+    eps = 1e-4
+    E = np.eye(3)
+    H = np.empty((3, 3, 3))
+    for a in range(3):
+        for b in range(3):
+            def at(sa, sb):
+                return f(np.repeat((sa * E[a] + sb * E[b])[None] * eps, 3, 0))
+            H[:, a, b] = (at(1, 1) - at(1, -1) - at(-1, 1) + at(-1, -1)) / (4 * eps ** 2)
+    H = 0.5 * (H + np.swapaxes(H, 1, 2))
+    np.testing.assert_allclose(H_an, H, rtol=1e-4, atol=1e-4 * np.abs(H).max())
+    for D in (2, 3):  # the step lowers f for both the projected (2 rows) and full rotations
+        R = Rotation.random(3, random_state=6).as_matrix()[:, :D]
+        Ca = rng.normal(size=(3, D, 6)) @ np.swapaxes(B, 1, 2)
+        assert np.all(U._rotation_energy(U.newton_step(R, Ca, C_bb), Ca, C_bb)
+                      <= U._rotation_energy(R, Ca, C_bb) + 1e-12)
 
 
 def test_horn_matrix_and_quaternions():

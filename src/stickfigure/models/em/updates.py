@@ -276,13 +276,6 @@ def procrustes_step(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, *, n_oute
     return Q[..., :D, :], q
 
 
-# Generators of so(3): _KG[a] = [e_a]_x.
-_KG = np.zeros((3, 3, 3))
-_KG[0, 1, 2], _KG[0, 2, 1] = -1.0, 1.0
-_KG[1, 0, 2], _KG[1, 2, 0] = 1.0, -1.0
-_KG[2, 0, 1], _KG[2, 1, 0] = -1.0, 1.0
-
-
 def _vee(M: np.ndarray) -> np.ndarray:
     """(M23 - M32, M31 - M13, M12 - M21): ``tr([w]_x M) = w . vee(M)``."""
     return np.stack([M[..., 1, 2] - M[..., 2, 1], M[..., 2, 0] - M[..., 0, 2], M[..., 0, 1] - M[..., 1, 0]], -1)
@@ -303,14 +296,25 @@ def _solve3(H: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _rodrigues(w: np.ndarray) -> np.ndarray:
-    """exp([w]_x), shape (..., 3, 3)."""
+    """exp([w]_x), shape (..., 3, 3): ``I + s K + c K^2`` with ``K^2 = w w^T - |w|^2 I``."""
     th2 = np.sum(w * w, axis=-1)
     th = np.sqrt(th2)
     small = th2 < 1e-16
     s = np.where(small, 1.0 - th2 / 6.0, np.sin(th) / np.where(small, 1.0, th))
     c = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(th)) / np.where(small, 1.0, th2))
-    K = np.tensordot(w, _KG, axes=([-1], [0]))
-    return np.eye(3) + s[..., None, None] * K + c[..., None, None] * (K @ K)
+    x, y, z = w[..., 0], w[..., 1], w[..., 2]
+    cx, cy, cz = c * x, c * y, c * z
+    out = np.empty(w.shape[:-1] + (3, 3))
+    out[..., 0, 0] = 1.0 - c * (th2 - x * x)
+    out[..., 1, 1] = 1.0 - c * (th2 - y * y)
+    out[..., 2, 2] = 1.0 - c * (th2 - z * z)
+    out[..., 0, 1] = cx * y - s * z
+    out[..., 1, 0] = cx * y + s * z
+    out[..., 0, 2] = cx * z + s * y
+    out[..., 2, 0] = cx * z - s * y
+    out[..., 1, 2] = cy * z - s * x
+    out[..., 2, 1] = cy * z + s * x
+    return out
 
 
 def _min_eig_sym3(H: np.ndarray) -> np.ndarray:
@@ -327,40 +331,54 @@ def _min_eig_sym3(H: np.ndarray) -> np.ndarray:
     return q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
 
 
+def _trace3(M: np.ndarray) -> np.ndarray:
+    return M[..., 0, 0] + M[..., 1, 1] + M[..., 2, 2]
+
+
+def newton_model(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gradient g (..., 3) and Hessian H (..., 3, 3) of ``w -> f(R exp([w]_x))`` at w = 0.
+
+    ``f(R) = tr(R C_bb R^T) - 2 tr(R C_ab^T)`` for R (..., D, 3) with orthonormal
+    rows. With ``P = R^T R`` (symmetric, trace D), ``N = C_ab^T R`` and C = C_bb
+    (symmetric): ``g = vee(C P - P C) - 2 vee(N)`` and
+    ``H = -2 T + (M - tr(M) I) - 2 (sym(N) - tr(N) I)``, ``M = C P + P C``,
+    ``T_ab = tr(P K_a C K_b)`` (K_a = [e_a]_x; docs/em.md). Expanding the two
+    Levi-Civita symbols of ``T`` (``(K_a)_jk = eps_jka``) gives, symmetrised,
+    ``T = (tr(PC) - D tr C) I - M + D C + tr(C) P``, so
+    ``H = 3 M - 2 D C - 2 tr(C) P - 2 sym(N) + (2 tr N + 2 D tr C - 4 tr(PC)) I``:
+    element-wise products of 3x3 arrays only (batched 3x3 matrix products cost
+    more than the arithmetic in numpy). Tested against finite differences.
+    """
+    D = R.shape[-2]
+    P = np.swapaxes(R, -1, -2) @ R
+    N = np.swapaxes(C_ab, -1, -2) @ R
+    CP = C_bb @ P
+    PC = np.swapaxes(CP, -1, -2)
+    g = _vee(CP - PC) - 2.0 * _vee(N)
+    trC = _trace3(C_bb)
+    diag = 2.0 * _trace3(N) + 2.0 * D * trC - 4.0 * _trace3(CP)
+    H = (3.0 * (CP + PC) - (2.0 * D) * C_bb - 2.0 * trC[..., None, None] * P - (N + np.swapaxes(N, -1, -2))
+         + diag[..., None, None] * np.eye(3))
+    return g, H
+
+
 def newton_step(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, energy: np.ndarray | None = None,
                 *, return_energy: bool = False) -> Any:
     """One Newton step for ``f(R) = tr(R C_bb R^T) - 2 tr(R C_ab^T)`` on the rotations ``R Q``.
 
-    With ``Q = exp([w]_x)`` and ``P = R^T R``, ``N = C_ab^T R``, the expansion to
-    second order in w is ``f0 + g.w + w^T H w / 2`` with
-    ``g = vee(C_bb P - P C_bb) - 2 vee(N)`` and
-    ``H = -2 T + (M - tr(M) I) - 2 (sym(N) - tr(N) I)``, ``M = C_bb P + P C_bb``,
-    ``T_ab = sym(tr(P K_a C_bb K_b))`` (derived in docs/em.md; tested against finite
-    differences). Where H is not positive definite it is shifted by its smallest
-    eigenvalue (Levenberg-Marquardt), and steps are capped at 0.5 rad; the result
-    is kept only where f decreased. ``energy``: f at R if known; with
-    ``return_energy`` the new f is returned too.
+    ``Q = exp([w]_x)`` with w from the quadratic model of :func:`newton_model`.
+    Where H is not positive definite it is shifted by its smallest eigenvalue
+    (Levenberg-Marquardt), and steps are capped at 0.5 rad; the result is kept
+    only where f decreased. ``energy``: f at R if known; with ``return_energy``
+    the new f is returned too.
     """
-    P = np.swapaxes(R, -1, -2) @ R
-    N = np.swapaxes(C_ab, -1, -2) @ R
-    CP = C_bb @ P
-    g = _vee(CP - np.swapaxes(CP, -1, -2)) - 2.0 * _vee(N)
-    X = (P[..., None, :, :] @ _KG).reshape(P.shape[:-2] + (3, 9))  # P K_a
-    Y = np.swapaxes(C_bb[..., None, :, :] @ _KG, -1, -2).reshape(P.shape[:-2] + (3, 9))  # (C K_b)^T
-    T = X @ np.swapaxes(Y, -1, -2)
-    T = 0.5 * (T + np.swapaxes(T, -1, -2))
-    M = CP + np.swapaxes(CP, -1, -2)
-    Ns = 0.5 * (N + np.swapaxes(N, -1, -2))
-    eye = np.eye(3)
-    trM = M[..., 0, 0] + M[..., 1, 1] + M[..., 2, 2]
-    trN = N[..., 0, 0] + N[..., 1, 1] + N[..., 2, 2]
-    H = -2.0 * T + (M - trM[..., None, None] * eye) - 2.0 * (Ns - trN[..., None, None] * eye)
+    g, H = newton_model(R, C_ab, C_bb)
     lam = _min_eig_sym3(H)
     mu = np.maximum(0.0, -lam) + 1e-6 * np.abs(H).max(axis=(-1, -2)) + 1e-300
-    w, _ = _solve3(H + mu[..., None, None] * eye, -g)
+    w, _ = _solve3(H + mu[..., None, None] * np.eye(3), -g)
     w = np.where(np.all(np.isfinite(w), axis=-1, keepdims=True), w, 0.0)
     # Long steps leave the region where the quadratic model holds.
-    nrm = np.linalg.norm(w, axis=-1, keepdims=True)
+    nrm = np.sqrt(np.sum(w * w, axis=-1, keepdims=True))
     w = w * np.minimum(1.0, 0.5 / np.maximum(nrm, 1e-300))
     R_new = R @ _rodrigues(w)
     e_new = _rotation_energy(R_new, C_ab, C_bb)
