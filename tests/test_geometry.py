@@ -355,3 +355,26 @@ def test_local_subspace_affinity_errors():
         g.local_subspace_affinity(np.zeros((1, 5, 2)))
     with pytest.raises(ValueError, match="n_neighbors"):
         g.local_subspace_affinity(np.random.default_rng(0).normal(size=(6, 5, 2)), n_neighbors=0)
+
+
+def test_hypothesis_scores_ignore_directions_the_members_do_not_span():
+    # Three members on one line span one direction, not the two a rank-2 fit asks for. The
+    # missing direction must not "explain" a point off that line (it used to overflow the
+    # leverage and score the point as a perfect fit).
+    from stickfigure.geometry import _hypothesis_scores, measurement_matrix
+
+    rng = np.random.default_rng(0)
+    F = 30
+    base = rng.normal(size=(F, 2))
+    line = np.stack([base * s for s in (0.0, 1.0, 2.0)])  # collinear trajectories
+    off = rng.normal(size=(1, F, 2)) * 3.0
+    xy = np.concatenate([line, off])
+    W = measurement_matrix(xy)
+    G = W.T @ W
+    mem = np.array([[True, True, True, False]])
+    with np.errstate(all="raise"):
+        z = _hypothesis_scores(G, mem, 2, 1e-4, 2 * F - 2, W)
+        z_gram = _hypothesis_scores(G, mem, 2, 1e-4, 2 * F - 2)
+    for zz in (z, z_gram):
+        assert np.all(zz[0, :3] < 1e-6)
+        assert zz[0, 3] > 100.0

@@ -1051,6 +1051,17 @@ def _complete_for_affinity(xy: np.ndarray, kappa: float = 1e-3) -> np.ndarray:
     return low_rank_complete(xy, max(1, min(r, P - 1, F * D - 1)))
 
 
+def _spanned(lam: np.ndarray, rtol: float = 1e-10) -> np.ndarray:
+    """Which principal directions (eigenvalues ``lam``, ascending) the members really span.
+
+    Members that are affinely dependent (coincident or collinear trajectories)
+    leave eigenvalues at rounding level; their eigenvectors are arbitrary
+    directions that would "explain" any other trajectory, and dividing by them
+    overflows the leverage.
+    """
+    return lam > rtol * max(float(lam.max(initial=0.0)), 1e-300)
+
+
 def _hypothesis_scores(G: np.ndarray, mem: np.ndarray, rank: int, sig2: float, dof: int,
                        W: np.ndarray | None = None) -> np.ndarray:
     """Normalised residual of every point under every hypothesis' rigid fit.
@@ -1078,14 +1089,16 @@ def _hypothesis_scores(G: np.ndarray, mem: np.ndarray, rank: int, sig2: float, d
             Yc = W[:, M] - mu[:, None]
             K = W.shape[0]
             lam, U = scipy.linalg.eigh(Yc @ Yc.T, subset_by_index=[K - r, K - 1])
-            lam = np.maximum(lam, 1e-300)
+            keep = _spanned(lam)
+            lam, U = lam[keep], U[:, keep]
             coef = U.T @ (W - mu[:, None])  # (r, P)
             proj = np.sum(coef * coef, axis=0)
             lev = np.sum(coef * coef / lam[:, None], axis=0) + 1.0 / n
         elif r >= 1:
             Gc = G[np.ix_(M, M)] - a[M][:, None] - a[M][None, :] + c
             lam, V = scipy.linalg.eigh(Gc, subset_by_index=[n - r, n - 1])
-            lam = np.maximum(lam, 1e-300)
+            keep = _spanned(lam)
+            lam, V = lam[keep], V[:, keep]
             cross = G[M] - a[M][:, None] - a[None, :] + c  # (x_i - mu) . (x_q - mu), (n, P)
             coef = (V.T @ cross) / np.sqrt(lam)[:, None]  # (r, P)
             proj = np.sum(coef * coef, axis=0)
