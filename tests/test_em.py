@@ -128,6 +128,7 @@ def test_save_load_and_impute_after_loading(tmp_path, chain, fitted):
     ({"dissolve_points": -1}, "dissolve_points"),
     ({"max_frames": 2}, "max_frames"),
     ({"oversegment": 0.5}, "oversegment"),
+    ({"n_jobs": 0}, "n_jobs"),
     ({"labels": [0, 1]}, "labels"),
 ])
 def test_bad_parameters(chain, bad, match):
@@ -267,21 +268,39 @@ def test_finer_start_recovers_parts_the_clustering_merged():
     traj = _benchmark_figure(2004)
     one = sf.fit(traj, method="em", random_state=2004, oversegment=None)
     assert one.n_sticks == 2 and "starts" not in one.info
-    sk = sf.fit(traj, method="em", random_state=2004)
+    sk = sf.fit(traj, method="em", random_state=2004, n_jobs=2)
     starts = sk.info["starts"]
     assert len(starts) == 2 and starts[1]["n_initial_sticks"] == 5
     assert sk.info["start"] == int(np.argmax([s["bic"] for s in starts])) == 1
     assert sk.info["first_start_misfit"] > 1.35
     assert adjusted_rand_score(traj.labels_true, sk.labels) == 1.0
     assert _edges(sk, traj) == _true_edges(traj)
+    # The second search ran beside the first in a forked process (on Linux); run after it in
+    # this process, it gives the same skeleton: it draws from its own generator.
+    import multiprocessing
+
+    from stickfigure.models.em.starts import _fork_context
+
+    assert sk.info["second_start_parallel"] == (_fork_context() is not None)
+    assert not multiprocessing.active_children()
+    seq = sf.fit(traj, method="em", random_state=2004, n_jobs=1)
+    assert seq.info["second_start_parallel"] is False
+    assert seq.info["starts"] == starts
+    np.testing.assert_array_equal(seq.labels, sk.labels)
+    assert seq.edges == sk.edges
+    np.testing.assert_array_equal(seq.joints, sk.joints)
 
 
 def test_no_second_start_when_every_stick_is_rigid():
     # Every stick of the first search fits at the noise level (this 4-part figure is found
     # exactly): the finer start, which could only add sticks, is not run.
     traj = _benchmark_figure(4)
-    sk = sf.fit(traj, method="em", random_state=4)
+    sk = sf.fit(traj, method="em", random_state=4, n_jobs=2)
     assert "starts" not in sk.info and sk.info["first_start_misfit"] <= 1.35
+    # The speculative second search was stopped, not left running.
+    import multiprocessing
+
+    assert not multiprocessing.active_children()
     assert adjusted_rand_score(traj.labels_true, sk.labels) == 1.0
     assert _edges(sk, traj) == _true_edges(traj)
 

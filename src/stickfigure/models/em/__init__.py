@@ -16,6 +16,7 @@ docs/em.md derives every update and documents the defaults.
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import asdict
 from typing import Any
 
@@ -28,6 +29,7 @@ from ..base import StickEstimator, register
 from .initialise import fill_gaps, initial_state, interpolate_rotations
 from .model import Observations, Priors, StickState, chain_degree, normalise
 from .refine import misfit_ratios
+from .starts import Speculative, available_cpus
 from .structure import (EMSettings, Stage, bic, extend_frames, learn_structure, run_em, search_frames,
                         stick_edges)
 from .updates import FLAT_RATIO, update_endpoints
@@ -129,6 +131,12 @@ class EMSkeleton(StickEstimator):
         rigidity affinity merges body segments of 1-3 markers (an affine body fits
         any four trajectories), which no later move splits apart again. None: one
         start (the paper).
+    n_jobs : int, optional
+        Processes for the two starts. With more than one, the finer start's search
+        runs beside the first one in a forked process (Linux) and is stopped as soon
+        as the first shows it is not needed: on two cores the fit then takes as long
+        as the longer search, not both. The result does not depend on it. None: the
+        CPUs this process may use.
     tau_p, alpha0, beta0, max_precision : float
         Priors (normalised units: the data are centred and scaled to unit RMS
         spread): precision of the Gaussian prior on local coordinates; Gamma prior
@@ -151,7 +159,7 @@ class EMSkeleton(StickEstimator):
                  reuse_scores: bool = True, tol: float = 1e-4, min_stick_points: int = 3,
                  max_sticks: int | None = None, labels: Any = None, refine_sticks: bool = True,
                  articulated_rounds: int = 4, dissolve_points: int = 3, resplit: bool = True,
-                 max_frames: int | None = 400, oversegment: float | None = 3.5,
+                 max_frames: int | None = 400, oversegment: float | None = 3.5, n_jobs: int | None = None,
                  tau_p: float = 25.0,
                  alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e10, impute_iter: int = 100,
                  random_state: Any = None, progress: bool = False) -> None:
@@ -179,6 +187,7 @@ class EMSkeleton(StickEstimator):
         self.resplit = resplit
         self.max_frames = max_frames
         self.oversegment = oversegment
+        self.n_jobs = n_jobs
         self.tau_p = tau_p
         self.alpha0 = alpha0
         self.beta0 = beta0
@@ -206,7 +215,7 @@ class EMSkeleton(StickEstimator):
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(map(repr, allowed))}, got {getattr(self, name)!r}")
-        for name in ("max_candidates", "max_merges", "max_sticks", "max_frames"):
+        for name in ("max_candidates", "max_merges", "max_sticks", "max_frames", "n_jobs"):
             v = getattr(self, name)
             if v is not None:
                 check_positive(v, name, integer=True, allow_zero=name == "max_merges")
@@ -240,7 +249,7 @@ class EMSkeleton(StickEstimator):
                                                    max_sticks=self.max_sticks, selection=self.selection,
                                                    endpoint_init=self.endpoint_init, n_ends=int(self.n_ends),
                                                    progress=self.progress, max_frames=self.max_frames,
-                                                   oversegment=self.oversegment)
+                                                   oversegment=self.oversegment, n_jobs=self.n_jobs)
         return _skeleton(stages, selected, norm, info0, self.selection, traj)
 
     # ----------------------------------------------------------------- impute
@@ -294,7 +303,7 @@ OVERSEGMENT_SIZE = 10.0
 def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np.random.Generator, *,
                labels: Any = None, max_sticks: int | None = None, selection: str = "bic",
                endpoint_init: str = "axis", n_ends: int = 2, progress: bool = False,
-               max_frames: int | None = None, oversegment: float | None = None
+               max_frames: int | None = None, oversegment: float | None = None, n_jobs: int | None = None
                ) -> tuple[list[Stage], int, tuple[np.ndarray, float], dict[str, Any]]:
     """Initialisation and the whole structure search; returns every stage and the selected one.
 
@@ -305,7 +314,10 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
     (:func:`refine.misfit_ratios` above ``OVERSEGMENT_MISFIT``) or sticks of more
     than ``OVERSEGMENT_SIZE`` points on average, a second search
     starts from ``ceil(P / oversegment)`` groups and the start whose selected stage
-    has the higher BIC (on the same frames) is kept (``info0["starts"]``).
+    has the higher BIC (on the same frames) is kept (``info0["starts"]``). With
+    ``n_jobs`` > 1 (None: the CPUs available) the second search starts at once in
+    a forked process and is stopped when the first shows it is not needed
+    (:mod:`.starts`); the result is the same either way.
     """
     obs_all, centre, scale = normalise(traj.xy)
     frames = search_frames(obs_all.mask > 0, max_frames)
@@ -326,32 +338,49 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
         if (labels < 0).any():
             raise ValueError("labels must assign every point to a stick (no -1)")
         starts.append(labels)
-    runs = []
-    for labels in starts:
+
+    def search(labels: np.ndarray, r: np.random.Generator, k: int, show: bool = progress
+               ) -> tuple[list[Stage], int, int]:
         _, labels = np.unique(labels, return_inverse=True)
         S = int(labels.max()) + 1
-        st = initial_state(obs, labels, S, priors, rng, endpoint_init=endpoint_init, n_ends=n_ends)
+        st = initial_state(obs, labels, S, priors, r, endpoint_init=endpoint_init, n_ends=n_ends)
         bar = None
         cb = None
-        if progress:
+        if show:
             from tqdm.auto import tqdm
 
-            bar = tqdm(total=max(S - 1, 1), desc=f"em merges (start {len(runs) + 1} of {len(starts)})",
-                       unit="stage")
+            bar = tqdm(total=max(S - 1, 1), desc=f"em merges (start {k + 1} of {len(starts)})", unit="stage")
 
-            def cb(k: int, n: int, value: float, bar: Any = bar) -> None:
+            def cb(i: int, n: int, value: float, bar: Any = bar) -> None:
                 bar.total = max(n, 1)
-                bar.n = k
-                bar.set_postfix_str(f"stage {k} of {n}, objective {value:.6g}")
+                bar.n = i
+                bar.set_postfix_str(f"stage {i} of {n}, objective {value:.6g}")
                 bar.refresh()
 
         try:
-            stages, selected = learn_structure(st, obs, priors, settings, rng, selection=selection, progress=cb)
+            stages, selected = learn_structure(st, obs, priors, settings, r, selection=selection, progress=cb)
         finally:
             if bar is not None:
                 bar.close()
-        runs.append((stages, selected, S))
-        if len(runs) == 1 and len(starts) > 1:
+        return stages, selected, S
+
+    runs = []
+    second: Speculative | contextlib.nullcontext = contextlib.nullcontext()
+    if len(starts) > 1:
+        # The finer start draws from its own generator, so it gives the same result whether it
+        # runs beside the first search (a forked process, started before the first search
+        # knows whether it is needed) or after it; spawning does not advance rng's stream.
+        try:
+            rng_fine = rng.spawn(1)[0]
+        except TypeError:  # a bit generator without a seed sequence
+            rng_fine = np.random.default_rng(int(rng.integers(2**63 - 1)))
+        n_jobs = available_cpus() if n_jobs is None else n_jobs
+        second = Speculative(lambda: search(starts[1], rng_fine, 1, show=False), parallel=n_jobs > 1,
+                             here=lambda: search(starts[1], rng_fine, 1))
+    with second:
+        runs.append(search(starts[0], rng, 0))
+        stages, selected, _ = runs[0]
+        if len(starts) > 1:
             # The finer start only where the first leaves a stick that is not rigid: every
             # stick fitting at the noise level means the clustering found the parts.
             # With a few large sticks the noise level (lower quartile over sticks) is itself
@@ -359,11 +388,10 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
             worst = float(misfit_ratios(stages[selected].state, obs).max())
             info0["first_start_misfit"] = worst
             n_first = int(stages[selected].labels.max()) + 1
-            if worst <= OVERSEGMENT_MISFIT and P <= OVERSEGMENT_SIZE * n_first:
-                break
             # A start is only finer if it has more groups than the first search ended with sticks.
-            if fine <= n_first:
-                break
+            if (worst > OVERSEGMENT_MISFIT or P > OVERSEGMENT_SIZE * n_first) and fine > n_first:
+                info0["second_start_parallel"] = second.forked
+                runs.append(second.result())
     # Starts are compared by BIC whatever the selection: the objective has no charge for the
     # per-frame motions, so it always prefers the start with more sticks.
     best = int(np.argmax([r[0][r[1]].bic for r in runs]))
