@@ -303,7 +303,7 @@ def _rodrigues(w: np.ndarray) -> np.ndarray:
     s = np.where(small, 1.0 - th2 / 6.0, np.sin(th) / np.where(small, 1.0, th))
     c = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(th)) / np.where(small, 1.0, th2))
     x, y, z = w[..., 0], w[..., 1], w[..., 2]
-    cx, cy, cz = c * x, c * y, c * z
+    cx, cy = c * x, c * y
     out = np.empty(w.shape[:-1] + (3, 3))
     out[..., 0, 0] = 1.0 - c * (th2 - x * x)
     out[..., 1, 1] = 1.0 - c * (th2 - y * y)
