@@ -8,14 +8,10 @@ Usage::
 
 Each ``benchmarks/bench_*.py`` module defines ``CASES``, a list of
 :class:`Case`. A case's function receives a :class:`Context` and yields result
-rows (dicts). The runner times every row's work and records its peak memory,
-and reports time as a ratio against a fixed numpy reference workload timed in
-the same process, so figures from noisy machines can be compared. Peak memory
-is the rise of the process's resident-set high-water mark over its size when
-the work starts (Linux: the mark is reset through ``/proc/self/clear_refs``);
-elsewhere tracemalloc's peak, which sees numpy's allocations but slows
-many-small-array code by half or more, so its times are then slower too. Work
-done in child processes (forked searches, parallel chains) is not counted.
+rows (dicts). The runner times every row's work and records its peak memory
+(tracemalloc, which sees numpy's allocations), and reports time as a ratio
+against a fixed numpy reference workload timed in the same process, so figures
+from noisy machines can be compared.
 
 Columns: suite, dataset, method, ari, misclassification, edge_f1, exact,
 rmse, time_s, time_ratio, peak_mb, plus any extra keys a case adds (notes).
@@ -53,39 +49,28 @@ class Context:
 
     def measure(self, fn: Callable[[], Any]) -> tuple[Any, dict[str, float]]:
         """Run ``fn()``; return its value and {time_s, time_ratio, peak_mb}."""
-        rss0 = _reset_rss_peak()
-        if rss0 is None:
-            tracemalloc.start()
-            tracemalloc.reset_peak()
+        tracemalloc.start()
+        tracemalloc.reset_peak()
         t0 = time.perf_counter()
         try:
             out = fn()
         finally:
             elapsed = time.perf_counter() - t0
-            if rss0 is None:
-                _, peak = tracemalloc.get_traced_memory()
-                tracemalloc.stop()
-            else:
-                peak = max(_status_kb("VmHWM") - rss0, 0) * 1024
+            _, peak = tracemalloc.get_traced_memory()
+            tracemalloc.stop()
         return out, {"time_s": elapsed, "time_ratio": elapsed / self.reference_s, "peak_mb": peak / 2**20}
 
+    def time(self, fn: Callable[[], Any]) -> tuple[Any, dict[str, float]]:
+        """Run ``fn()`` untraced; return its value and {time_s, time_ratio}.
 
-def _status_kb(key: str) -> int:
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith(key + ":"):
-                return int(line.split()[1])
-    raise KeyError(key)
-
-
-def _reset_rss_peak() -> int | None:
-    """Reset the resident-set high-water mark; return the current size in kB (None: not possible)."""
-    try:
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
-        return _status_kb("VmRSS")
-    except (OSError, KeyError, ValueError):
-        return None
+        tracemalloc (:meth:`measure`) slows code made of many small numpy operations
+        by half or more; cases that report a time target time the work with this and
+        trace its memory in a separate run.
+        """
+        t0 = time.perf_counter()
+        out = fn()
+        elapsed = time.perf_counter() - t0
+        return out, {"time_s": elapsed, "time_ratio": elapsed / self.reference_s}
 
 
 @dataclass
