@@ -30,6 +30,7 @@ def test_result_comes_from_a_child_process():
     with Speculative(lambda: _pid_and([1, 2, 3])) as job:
         assert job.forked
         pid, value = job.result()
+        assert job.forked  # still says how it ran
     assert pid != os.getpid() and value == [1, 2, 3]
     assert not multiprocessing.active_children()
 

@@ -390,8 +390,8 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
             n_first = int(stages[selected].labels.max()) + 1
             # A start is only finer if it has more groups than the first search ended with sticks.
             if (worst > OVERSEGMENT_MISFIT or P > OVERSEGMENT_SIZE * n_first) and fine > n_first:
-                info0["second_start_parallel"] = second.forked
                 runs.append(second.result())
+                info0["second_start_parallel"] = second.forked
     # Starts are compared by BIC whatever the selection: the objective has no charge for the
     # per-frame motions, so it always prefers the start with more sticks.
     best = int(np.argmax([r[0][r[1]].bic for r in runs]))

@@ -90,11 +90,8 @@ class Speculative:
             proc.start()
             send.close()
             self._proc, self._conn = proc, recv
-
-    @property
-    def forked(self) -> bool:
-        """Whether the job runs in a child process."""
-        return self._proc is not None
+        #: Whether the job was forked into a child process (it stays true after the result).
+        self.forked = self._proc is not None
 
     def result(self) -> Any:
         if self._proc is None:
