@@ -89,7 +89,9 @@ def test_similarity_log_matches_matrix_logarithm(scale, angle, tx, ty):
     hat = np.array([[c, -w, vx], [w, c, vy], [0, 0, 0]])
     np.testing.assert_allclose(scipy.linalg.expm(hat), Mx, atol=1e-9)
     np.testing.assert_allclose(M.similarity_exp(xi), Mx, atol=1e-9)
-    np.testing.assert_allclose(hat, scipy.linalg.logm(Mx).real, atol=1e-7)
+    with np.errstate(all="ignore"):  # scipy's 1-norm estimator inside logm warns on some examples
+        ref = scipy.linalg.logm(Mx).real
+    np.testing.assert_allclose(hat, ref, atol=1e-7)
 
 
 def test_similarity_log_vectorised_and_pure_translation():
