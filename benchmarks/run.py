@@ -48,20 +48,18 @@ class Context:
     reference_s: float = 1.0
 
     def measure(self, fn: Callable[[], Any]) -> tuple[Any, dict[str, float]]:
-        """Run ``fn()``; return its value and {time_s, time_ratio, peak_mb}."""
+        """Run ``fn()`` under tracemalloc; return its value and {time_s, time_ratio, peak_mb}."""
         tracemalloc.start()
         tracemalloc.reset_peak()
-        t0 = time.perf_counter()
         try:
-            out = fn()
-        finally:
-            elapsed = time.perf_counter() - t0
+            out, timing = self.time(fn)
             _, peak = tracemalloc.get_traced_memory()
+        finally:
             tracemalloc.stop()
-        return out, {"time_s": elapsed, "time_ratio": elapsed / self.reference_s, "peak_mb": peak / 2**20}
+        return out, {**timing, "peak_mb": peak / 2**20}
 
     def time(self, fn: Callable[[], Any]) -> tuple[Any, dict[str, float]]:
-        """Run ``fn()`` untraced; return its value and {time_s, time_ratio}.
+        """Run ``fn()`` and time it, starting no tracing of its own; return its value and {time_s, time_ratio}.
 
         tracemalloc (:meth:`measure`) slows code made of many small numpy operations
         by half or more; cases that report a time target time the work with this and
