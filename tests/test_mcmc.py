@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 from sklearn.metrics import adjusted_rand_score
@@ -70,6 +72,22 @@ def test_same_seed_same_result(arm):
 def test_parallel_chains_match_serial(arm):
     a = StickMCMC(random_state=5, **TINY).fit(arm).skeleton_
     b = StickMCMC(random_state=5, **{**TINY, "n_jobs": 2}).fit(arm).skeleton_
+    np.testing.assert_allclose(a.state["trace_log_joint"], b.state["trace_log_joint"])
+
+
+def test_default_workers_follow_the_cpus_this_process_may_use(arm, monkeypatch):
+    # With one CPU allowed (an affinity mask, a container), n_jobs=None runs the chains here,
+    # whatever os.cpu_count() says about the host.
+    from stickfigure.models.mcmc import sampler
+
+    def no_pool(*args, **kwargs):
+        raise AssertionError("a process pool was started with one CPU available")
+
+    monkeypatch.setattr(sampler, "available_cpus", lambda: 1)
+    monkeypatch.setattr(os, "cpu_count", lambda: 64)
+    monkeypatch.setattr(sampler, "ProcessPoolExecutor", no_pool)
+    a = StickMCMC(random_state=5, **{**TINY, "n_jobs": None}).fit(arm).skeleton_
+    b = StickMCMC(random_state=5, **TINY).fit(arm).skeleton_
     np.testing.assert_allclose(a.state["trace_log_joint"], b.state["trace_log_joint"])
 
 

@@ -1,4 +1,5 @@
-"""How many threads the linear-algebra library may use inside the methods.
+"""How many threads the linear-algebra library may use inside the methods, and how many CPUs
+the process may use (the default worker count of the methods that run jobs in parallel).
 
 The methods' work is many small matrix problems (per-cluster eigenproblems,
 per-frame 2x3 Procrustes fits, batched 3x3 solves). Multithreaded BLAS only
@@ -17,7 +18,16 @@ from typing import Iterator
 
 from threadpoolctl import threadpool_limits
 
-__all__ = ["blas_threads"]
+__all__ = ["available_cpus", "blas_threads"]
+
+
+def available_cpus() -> int:
+    """CPUs this process may run on: its affinity mask where the platform has one (a container or
+    ``taskset`` may allow fewer than ``os.cpu_count()`` reports), else ``os.cpu_count()``."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
 
 
 @contextlib.contextmanager

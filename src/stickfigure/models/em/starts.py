@@ -26,21 +26,14 @@ on other platforms, the second search runs after the first, in this process.
 from __future__ import annotations
 
 import multiprocessing
-import os
 import sys
 import threading
 import traceback
 from typing import Any, Callable
 
+from ..._threads import available_cpus
+
 __all__ = ["available_cpus", "Speculative"]
-
-
-def available_cpus() -> int:
-    """CPUs this process may run on (its affinity mask where the platform has one)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
 
 
 def _fork_context() -> Any:

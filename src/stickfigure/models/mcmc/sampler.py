@@ -9,13 +9,13 @@ tqdm progress bar.
 
 from __future__ import annotations
 
-import os
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
+from ..._threads import available_cpus
 from .data import initial_state, rigid_imputation
 from .kernels import MoveStats, SweepConfig, polish_tree, sweep, update_kappa_nd
 from .model import Hyper, y_posterior
@@ -273,12 +273,12 @@ def run_chains(z: np.ndarray, hyper: Hyper, cfg: SweepConfig, settings: ChainSet
     Parameters
     ----------
     n_jobs : int, optional
-        Worker processes; None means ``min(n_chains, os.cpu_count())``, 1 runs in this process.
+        Worker processes; None means ``min(n_chains, CPUs this process may use)``, 1 runs in this process.
     """
     seeds = np.random.SeedSequence(int(rng.integers(2**63 - 1))).spawn(n_chains)
     jobs = [(z, hyper, cfg, settings, seeds[c], c, progress) for c in range(n_chains)]
     if n_jobs is None:
-        n_jobs = min(n_chains, os.cpu_count() or 1)
+        n_jobs = min(n_chains, available_cpus())
     n_jobs = max(1, min(int(n_jobs), n_chains))
     if n_jobs == 1:
         return [_chain_job(j) for j in jobs]
