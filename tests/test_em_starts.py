@@ -10,7 +10,8 @@ import time
 
 import pytest
 
-from stickfigure.models.em.starts import Speculative, _fork_context, available_cpus
+from stickfigure._threads import available_cpus
+from stickfigure.models.em.starts import Speculative, _fork_context
 
 linux = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="forks only on Linux")
 

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from ..._threads import available_cpus
 from ..._validation import check_labels, check_positive
 from ...skeleton import Skeleton
 from ...trajectories import Trajectories
@@ -29,7 +30,7 @@ from ..base import StickEstimator, register
 from .initialise import fill_gaps, initial_state, interpolate_rotations
 from .model import Observations, Priors, StickState, chain_degree, normalise
 from .refine import misfit_ratios
-from .starts import Speculative, available_cpus
+from .starts import Speculative
 from .structure import (EMSettings, Stage, bic, extend_frames, learn_structure, run_em, search_frames,
                         stick_edges)
 from .updates import FLAT_RATIO, update_endpoints

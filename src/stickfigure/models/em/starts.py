@@ -31,9 +31,8 @@ import threading
 import traceback
 from typing import Any, Callable
 
-from ..._threads import available_cpus
 
-__all__ = ["available_cpus", "Speculative"]
+__all__ = ["Speculative"]
 
 
 def _fork_context() -> Any:
