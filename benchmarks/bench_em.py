@@ -28,6 +28,13 @@ em-speed
     1.5x) comes from the rows with the true groups given (memory should scale
     linearly with frames; a forked second search's memory is not counted).
     ``ctx.full`` adds the human-sized run with the paper's fixed iteration counts.
+em-memory
+    Peak memory against frames: the human-sized figure's first 254, 509 and 1018
+    frames, true groups given and every frame searched (``max_frames=None``, so
+    the merge search itself runs on all frames; by default it runs on at most 400
+    and only the final re-fit sees every frame, which hides the growth). Each
+    row gives the peak per 1000 frames and its ratio to the shortest clip's
+    (1.0 = linear in frames).
 """
 
 from __future__ import annotations
@@ -231,10 +238,25 @@ def case_speed(ctx: Context) -> Iterator[dict[str, Any]]:
                "notes": "em alone (true groups as the start); traced (peak memory; time slowed by tracemalloc)"}
 
 
+def case_memory(ctx: Context) -> Iterator[dict[str, Any]]:
+    full = _sized(53, 1018, 11, ctx.seed)
+    first = None
+    for frames in (254, 509, 1018):
+        traj = full.slice(frames=slice(0, frames))
+        skel, timing = ctx.measure(lambda: sf.fit(traj, method="em", random_state=ctx.seed,
+                                                  labels=traj.labels_true, max_frames=None))
+        per = timing["peak_mb"] / frames * 1000.0
+        first = per if first is None else first
+        yield {"dataset": f"human-sized 53x{frames}, groups given, every frame searched", "method": "em",
+               **_score(skel, traj), **timing,
+               "notes": f"{per:.0f} MB per 1000 frames, {per / first:.2f}x the 254-frame clip's; traced"}
+
+
 CASES = [
     Case("em-structure-random3d", case_structure_random3d),
     Case("em-imputation-synthetic", case_imputation_synthetic),
     Case("em-imputation-mocap", case_imputation_mocap, needs_data=True),
     Case("em-structure-mocap", case_structure_mocap, needs_data=True),
     Case("em-speed", case_speed),
+    Case("em-memory", case_memory),
 ]
