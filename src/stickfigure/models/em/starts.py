@@ -31,7 +31,6 @@ import threading
 import traceback
 from typing import Any, Callable
 
-
 __all__ = ["Speculative"]
 
 
