@@ -182,6 +182,11 @@ def _horn_matrix(C: np.ndarray) -> np.ndarray:
     return N
 
 
+def _trace3(M: np.ndarray) -> np.ndarray:
+    """Traces of 3x3 matrices (..., 3, 3) -> (...) (cheaper than np.trace on small batched arrays)."""
+    return M[..., 0, 0] + M[..., 1, 1] + M[..., 2, 2]
+
+
 def quat_to_rot(q: np.ndarray) -> np.ndarray:
     """Rotation matrices (..., 3, 3) of unit quaternions (..., 4) = (w, x, y, z)."""
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
@@ -203,7 +208,7 @@ def quat_to_rot(q: np.ndarray) -> np.ndarray:
 def rot_to_quat(R: np.ndarray) -> np.ndarray:
     """Unit quaternions (..., 4) of proper rotations (..., 3, 3) (Shepperd's method, vectorised)."""
     m = R
-    tr = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
+    tr = _trace3(m)
     cand = np.stack([
         np.stack([1 + tr, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1),
         np.stack([m[..., 2, 1] - m[..., 1, 2], 1 + 2 * m[..., 0, 0] - tr, m[..., 0, 1] + m[..., 1, 0],
@@ -320,7 +325,7 @@ def _rodrigues(w: np.ndarray) -> np.ndarray:
 def _min_eig_sym3(H: np.ndarray) -> np.ndarray:
     """Smallest eigenvalue of symmetric 3x3 matrices (closed form, trigonometric)."""
     p1 = H[..., 0, 1] ** 2 + H[..., 0, 2] ** 2 + H[..., 1, 2] ** 2
-    q = (H[..., 0, 0] + H[..., 1, 1] + H[..., 2, 2]) / 3.0
+    q = _trace3(H) / 3.0
     p2 = (H[..., 0, 0] - q) ** 2 + (H[..., 1, 1] - q) ** 2 + (H[..., 2, 2] - q) ** 2 + 2.0 * p1
     p = np.sqrt(p2 / 6.0)
     B = (H - q[..., None, None] * np.eye(3)) / np.where(p > 0, p, 1.0)[..., None, None]
@@ -329,10 +334,6 @@ def _min_eig_sym3(H: np.ndarray) -> np.ndarray:
                + B[..., 0, 2] * (B[..., 1, 0] * B[..., 2, 1] - B[..., 1, 1] * B[..., 2, 0]))
     phi = np.arccos(np.clip(r, -1.0, 1.0)) / 3.0
     return q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
-
-
-def _trace3(M: np.ndarray) -> np.ndarray:
-    return M[..., 0, 0] + M[..., 1, 1] + M[..., 2, 2]
 
 
 def newton_model(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
