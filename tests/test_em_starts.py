@@ -75,4 +75,11 @@ def test_without_parallel_the_job_runs_here_when_asked():
         assert not job.forked and not calls  # nothing runs until the result is asked for
         assert job.result() == "here"
     assert calls == [os.getpid()]
-    assert available_cpus() >= 1
+
+
+def test_available_cpus_counts_what_this_process_may_use():
+    # The default of n_jobs (em's starts, mcmc's chains): the affinity mask, not the host's count.
+    n = available_cpus()
+    assert 1 <= n <= (os.cpu_count() or n)
+    if hasattr(os, "sched_getaffinity"):
+        assert n == len(os.sched_getaffinity(0))
