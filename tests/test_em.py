@@ -305,6 +305,37 @@ def test_no_second_start_when_every_stick_is_rigid():
     assert _edges(sk, traj) == _true_edges(traj)
 
 
+def test_noiseless_figure_is_not_oversegmented():
+    # Known answer on noiseless data: every stick's residual is the residue the truncated EM
+    # leaves, different from stick to stick. With the noise variance floored at 1e-300 and
+    # tau_w capped at 1e10, the stick checks read that residue as articulation and this
+    # 5-part figure came out as 13 sticks (ARI 0.67); the floor 1 / max_precision (1e-6,
+    # a noise std of 1e-3 of the spread) leaves the five parts and their tree.
+    traj = sf.synthetic.random_figure(n_sticks=5, frames=120, noise=0.0, seed=1)
+    sk = sf.fit(traj, method="em", random_state=0)
+    assert sk.info["precisions"]["tau_w"] <= 1e6
+    assert adjusted_rand_score(traj.labels_true, sk.labels) == 1.0
+    assert _edges(sk, traj) == _true_edges(traj)
+
+
+def test_noise_variance_is_floored_by_the_precision_bound(chain):
+    from stickfigure.models.em import fit_stages
+    from stickfigure.models.em.model import Priors, normalise
+    from stickfigure.models.em.refine import misfit_ratios, noise_variance
+    from stickfigure.models.em.structure import EMSettings
+
+    stages, sel, _, _ = fit_stages(chain, EMSettings(n_iter=60), Priors(), np.random.default_rng(0),
+                                   labels=chain.labels_true)
+    st = stages[sel].state
+    obs, _, _ = normalise(chain.xy)
+    rss, quartile = noise_variance(st, obs, Priors(max_precision=1e12))
+    assert rss.shape == (st.n_sticks,) and 1e-12 < quartile < 1e-2  # 1 % noise: the sticks' own level
+    _, var = noise_variance(st, obs, Priors(max_precision=1e2))
+    assert var == 1e-2  # above the data's level: the bound
+    loose, tight = misfit_ratios(st, obs, Priors(max_precision=1e2)), misfit_ratios(st, obs, Priors(max_precision=1e12))
+    np.testing.assert_allclose(loose, tight * quartile / 1e-2)
+
+
 def test_true_joints_are_rigid(chain):
     from stickfigure.models.em import fit_stages
     from stickfigure.models.em.model import Priors, normalise

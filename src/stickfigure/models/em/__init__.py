@@ -141,7 +141,9 @@ class EMSkeleton(StickEstimator):
     tau_p, alpha0, beta0, max_precision : float
         Priors (normalised units: the data are centred and scaled to unit RMS
         spread): precision of the Gaussian prior on local coordinates; Gamma prior
-        of the vertex precisions; upper bound on tau_w, tau_m, tau_t.
+        of the vertex precisions; upper bound on tau_w and tau_t and on the
+        inverse noise variance of the stick checks (default 1e6: noise is taken to be
+        at least 1e-3 of the spread, so noiseless data are not over-segmented).
     impute_iter : int
         EM iterations used to re-fit motions on new frames in :meth:`impute`.
     random_state : None, int or Generator
@@ -162,7 +164,7 @@ class EMSkeleton(StickEstimator):
                  articulated_rounds: int = 4, dissolve_points: int = 3, resplit: bool = True,
                  max_frames: int | None = 400, oversegment: float | None = 3.5, n_jobs: int | None = None,
                  tau_p: float = 25.0,
-                 alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e10, impute_iter: int = 100,
+                 alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e6, impute_iter: int = 100,
                  random_state: Any = None, progress: bool = False) -> None:
         self.n_iter = n_iter
         self.n_iter_merge = n_iter_merge
@@ -386,7 +388,7 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
             # stick fitting at the noise level means the clustering found the parts.
             # With a few large sticks the noise level (lower quartile over sticks) is itself
             # inflated, so more than OVERSEGMENT_SIZE points per stick also qualify.
-            worst = float(misfit_ratios(stages[selected].state, obs).max())
+            worst = float(misfit_ratios(stages[selected].state, obs, priors).max())
             info0["first_start_misfit"] = worst
             n_first = int(stages[selected].labels.max()) + 1
             # A start is only finer if it has more groups than the first search ended with sticks.

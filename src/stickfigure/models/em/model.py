@@ -119,8 +119,12 @@ class Priors:
         Shape and rate of the Gamma prior on every vertex precision phi_j.
     max_precision : float
         Upper bound on tau_w and tau_t (the paper's "thresholds on Gaussian
-        variances"): keeps the EM away from the degenerate zero-variance
-        solutions of noiseless data.
+        variances"), and ``1 / max_precision`` the least noise variance the stick
+        checks assume (:func:`.refine.noise_variance`). The default 1e6 (a noise
+        std of at least 1e-3 of the RMS spread) is a resolution: misfits below it
+        are not evidence of structure. On noiseless data the residual is what the
+        truncated EM left; with the former 1e10 it was read as articulation and
+        3 of 4 noiseless random figures came out with 8-13 sticks for 5.
     max_tau_m_ratio : float
         Upper bound on ``tau_m / tau_w``. The two Gaussians on an endpoint (about
         its stick, precision tau_m, and about its vertex, phi_j) act in series, so
@@ -133,7 +137,7 @@ class Priors:
     tau_p: float = 25.0
     alpha0: float = 1.0
     beta0: float = 1e-3
-    max_precision: float = 1e10
+    max_precision: float = 1e6
     max_tau_m_ratio: float = 10.0
 
 

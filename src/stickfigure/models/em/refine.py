@@ -72,14 +72,17 @@ def fit_dof(st: StickState, obs: Observations) -> np.ndarray:
             - 3 * np.bincount(st.labels, minlength=st.n_sticks))
 
 
-def noise_variance(st: StickState, obs: Observations) -> tuple[np.ndarray, float]:
+def noise_variance(st: StickState, obs: Observations, priors: Priors) -> tuple[np.ndarray, float]:
     """Per-stick residual sums of squares (S,) and a robust noise variance per coordinate.
 
     Each stick's variance is corrected for the degrees of freedom its fit used
     (:func:`motion_parameters`: ``3 + D`` per frame it is seen in, or only ``D`` where
     its rotation is interpolated; 3 local coordinates per point), so sticks with few points do not look less noisy than they are; the
     noise variance is the lower quartile over sticks, so up to three quarters of
-    the sticks may be bad without inflating it.
+    the sticks may be bad without inflating it. It is at least ``1 / priors.max_precision``,
+    the bound on tau_w: on noiseless data every stick's residual is what the EM's
+    truncated optimisation left, and measured against the best-converged stick's
+    residue that looks like articulation everywhere (docs/em.md, section 11).
     """
     des = st.design(obs)
     rss = des.residual_sq(st.rot, st.trans, st.local)
@@ -87,15 +90,15 @@ def noise_variance(st: StickState, obs: Observations) -> tuple[np.ndarray, float
     dof = fit_dof(st, obs)
     ok = dof > 0
     var = float(np.quantile(rss[ok] / dof[ok], 0.25)) if ok.any() else float(rss.sum() / max(n.sum(), 1))
-    return rss, max(var, 1e-300)
+    return rss, max(var, 1.0 / priors.max_precision)
 
 
-def split_candidates(st: StickState, obs: Observations, rng: np.random.Generator, *, min_points: int
-                     ) -> list[tuple[int, np.ndarray]]:
+def split_candidates(st: StickState, obs: Observations, rng: np.random.Generator, priors: Priors, *,
+                     min_points: int) -> list[tuple[int, np.ndarray]]:
     """Sticks worth splitting in two: [(stick, labels of its points 0/1)]."""
     from ...segmentation import affinity_propagation_segments
 
-    rss, var = noise_variance(st, obs)
+    rss, var = noise_variance(st, obs, priors)
     N = float(obs.mask.sum() * obs.n_dims)
     F, D = obs.n_frames, obs.n_dims
     penalty = 0.5 * F * (3 + D) * np.log(N)
@@ -135,7 +138,7 @@ def join_candidates(st: StickState, obs: Observations, priors: Priors) -> list[t
     S = st.n_sticks
     if S < 2:
         return []
-    rss, var = noise_variance(st, obs)
+    rss, var = noise_variance(st, obs, priors)
     D = obs.n_dims
     N = float(obs.mask.sum() * D)
     saved = 0.5 * np.log(N) * motion_parameters(st, obs)  # (S,)
@@ -161,7 +164,7 @@ def refine_labels(st: StickState, obs: Observations, rng: np.random.Generator, *
     labels = st.labels.copy()
     S = st.n_sticks
     priors = priors or Priors()
-    splits = split_candidates(st, obs, rng, min_points=min_points)
+    splits = split_candidates(st, obs, rng, priors, min_points=min_points)
     joins = join_candidates(st, obs, priors)
     split_sticks = {s for s, _ in splits}
     for s, halves in splits:
@@ -264,7 +267,7 @@ def articulated_split_candidates(st: StickState, obs: Observations, priors: Prio
     """
     from .structure import _union
 
-    rss, var0 = noise_variance(st, obs)
+    rss, var0 = noise_variance(st, obs, priors)
     var = var0 if var is None else var  # the noise level of a larger model this state is part of
     N = float(obs.mask.sum() * obs.n_dims)
     F, D = obs.n_frames, obs.n_dims
@@ -522,7 +525,7 @@ def _dissolve_loss(st: StickState, obs: Observations, priors: Priors, s: int) ->
     move to their best other sticks with all motions fixed."""
     from .assign import candidate_fits
 
-    rss, var = noise_variance(st, obs)
+    rss, var = noise_variance(st, obs, priors)
     _, sq = candidate_fits(st, obs, priors)
     pts = np.flatnonzero(st.labels == s)
     other = np.delete(sq[pts], s, axis=1)
@@ -584,7 +587,7 @@ def dissolve_small_sticks(st: StickState, obs: Observations, priors: Priors, set
 
 
 # ----------------------------------------------------------------- moving groups of points
-def misfit_ratios(st: StickState, obs: Observations) -> np.ndarray:
+def misfit_ratios(st: StickState, obs: Observations, priors: Priors) -> np.ndarray:
     """Each stick's residual variance over the robust noise variance, shape (S,).
 
     The residual variance is corrected for the degrees of freedom of the stick's
@@ -594,7 +597,7 @@ def misfit_ratios(st: StickState, obs: Observations) -> np.ndarray:
     figures: 0.95-1.34, mostly below 1.15); a stick holding points of two parts
     beside a joint 1.4-3.5, two body segments joined in one stick far more.
     """
-    rss, var = noise_variance(st, obs)
+    rss, var = noise_variance(st, obs, priors)
     des = st.design(obs)
     D = obs.n_dims
     dof = des.n.sum(axis=1) * D - (des.n > 0).sum(axis=1) * (3 + D) - 3 * np.bincount(st.labels,
@@ -637,8 +640,8 @@ def resplit_pairs(st: StickState, obs: Observations, priors: Priors, settings, r
     while changed:
         changed = False
         edges, _ = stick_edges(st)
-        rss, var = noise_variance(st, obs)
-        ratio = misfit_ratios(st, obs)
+        rss, var = noise_variance(st, obs, priors)
+        ratio = misfit_ratios(st, obs, priors)
         # The most suspect pairs first; at most max_trials fits in all (each costs an EM run).
         for a, b in sorted(edges, key=lambda e: -max(ratio[e[0]], ratio[e[1]])):
             if max(ratio[a], ratio[b]) <= suspect_ratio or trials >= max_trials:

@@ -644,7 +644,8 @@ def update_ends(st: StickState, priors: Priors) -> None:
 
 
 def update_precisions(st: StickState, obs: Observations, priors: Priors) -> None:
-    """Maximum-likelihood tau_w, tau_m and tau_t (capped at ``priors.max_precision``).
+    """Maximum-likelihood tau_w, tau_m and tau_t (tau_w and tau_t capped at ``priors.max_precision``,
+    tau_m at ``priors.max_tau_m_ratio * tau_w``).
 
     ``1/tau_w = sum o |w - R l - t|^2 / (D N_obs)``;
     ``1/tau_m = sum_{i,f} (|mu(e) - R k - t|^2 + D/tau(e)) / (D E S F)``;
@@ -658,7 +659,9 @@ def update_precisions(st: StickState, obs: Observations, priors: Priors) -> None
     st.tau_w = float(min(D * des.n.sum() / max(ss, 1e-300), cap))
     eres = st.mu_e - st.end_predictions()
     ss = np.sum(eres * eres) + F * D * np.sum(1.0 / st.tau_e)
-    st.tau_m = float(min(D * st.mu_e.shape[0] * F / max(ss, 1e-300), cap, priors.max_tau_m_ratio * st.tau_w))
+    # tau_m's bound follows tau_w's (max_tau_m_ratio), which is capped: a cap of its own at
+    # max_precision would bind on real data whose tau_w is within 10x of it.
+    st.tau_m = float(min(D * st.mu_e.shape[0] * F / max(ss, 1e-300), priors.max_tau_m_ratio * st.tau_w))
     if F > 1:
         dmu = np.diff(st.mu_v, axis=1)
         inv = 1.0 / st.tau_v
