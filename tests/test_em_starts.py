@@ -51,7 +51,8 @@ def test_a_failure_in_the_child_is_raised_here():
     def boom():
         raise ValueError("bad stick")
 
-    with Speculative(boom) as job, pytest.raises(RuntimeError, match="bad stick"):
+    with Speculative(boom, name="the test job") as job, \
+            pytest.raises(RuntimeError, match=r"(?s)the test job failed in its process.*bad stick"):
         job.result()
     assert not multiprocessing.active_children()
 

@@ -379,7 +379,7 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
             rng_fine = np.random.default_rng(int(rng.integers(2**63 - 1)))
         n_jobs = available_cpus() if n_jobs is None else n_jobs
         second = Speculative(lambda: search(starts[1], rng_fine, 1, show=False), parallel=n_jobs > 1,
-                             here=lambda: search(starts[1], rng_fine, 1))
+                             here=lambda: search(starts[1], rng_fine, 1), name="the second structure search")
     with second:
         runs.append(search(starts[0], rng, 0))
         stages, selected, _ = runs[0]

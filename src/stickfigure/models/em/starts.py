@@ -67,11 +67,13 @@ class Speculative:
     in this process (``here()`` instead when given: the same work, e.g. with a
     progress bar the child must not show) and :meth:`cancel` does nothing. Use as
     a context manager so the child never outlives an exception in the parent.
+    ``name`` says what the job is in the errors :meth:`result` raises.
     """
 
     def __init__(self, job: Callable[[], Any], *, parallel: bool = True,
-                 here: Callable[[], Any] | None = None) -> None:
+                 here: Callable[[], Any] | None = None, name: str = "the job") -> None:
         self._job = job if here is None else here
+        self._name = name
         self._proc = None
         self._conn = None
         ctx = _fork_context() if parallel else None
@@ -91,12 +93,11 @@ class Speculative:
             status, payload = self._conn.recv()  # before join: a large result fills the pipe
         except EOFError:
             self._proc.join()
-            raise RuntimeError(f"the second structure search's process died (exit code {self._proc.exitcode})"
-                               ) from None
+            raise RuntimeError(f"{self._name}'s process died (exit code {self._proc.exitcode})") from None
         finally:
             self._close()
         if status != "ok":
-            raise RuntimeError(f"the second structure search failed in its process:\n{payload}")
+            raise RuntimeError(f"{self._name} failed in its process:\n{payload}")
         return payload
 
     def cancel(self) -> None:
