@@ -25,10 +25,11 @@ em-imputation-mocap
     41-marker take and the HDM05 take from the data directory, at 30 Hz and at
     their own 120 Hz (the first 240 frames of each unless ``ctx.full``).
 em-structure-mocap
-    The CMU and HDM05 takes: ARI of the sticks against the marker-set body segments,
-    edges; and the same takes with the marker set's segments given as the sticks
-    (joints searched), whose BIC against the found structure's shows which of the
-    two the model prefers.
+    The CMU and HDM05 takes (isometric, at 30 Hz and at their own 120 Hz, the first
+    240 frames of each unless ``ctx.full``): ARI of the sticks against the marker-set
+    body segments, edges; and the same takes with the marker set's segments given as
+    the sticks (joints searched), whose BIC against the found structure's shows which
+    of the two the model prefers.
 em-structure-hopkins
     Real video feature tracks (Hopkins 155, every sequence in the data directory):
     sticks found, and how well they respect the independent motions the dataset
@@ -244,7 +245,9 @@ def _selected_bic(skel: sf.Skeleton) -> float:
 
 
 def case_structure_mocap(ctx: Context) -> Iterator[dict[str, Any]]:
-    for name, traj in _mocap(ctx):
+    takes = [(name, traj, 30.0) for name, traj in _mocap(ctx)]
+    takes += [(name, traj, traj.frame_rate or 120.0) for name, traj in _mocap(ctx, native=True)]
+    for name, traj, rate in takes:
         if traj.labels_true is None:
             continue
         skel, timing = ctx.measure(lambda: sf.fit(traj, method="em", random_state=ctx.seed))
@@ -255,7 +258,7 @@ def case_structure_mocap(ctx: Context) -> Iterator[dict[str, Any]]:
             ma = np.bincount(traj.labels_true[skel.labels == a][traj.labels_true[skel.labels == a] >= 0]).argmax()
             mb = np.bincount(traj.labels_true[skel.labels == b][traj.labels_true[skel.labels == b] >= 0]).argmax()
             named.append(f"{parts[ma] if ma < len(parts) else ma}-{parts[mb] if mb < len(parts) else mb}")
-        yield {"dataset": f"{name} isometric 30 Hz", "method": "em", **s, **timing,
+        yield {"dataset": f"{name} isometric {rate:g} Hz", "method": "em", **s, **timing,
                "notes": f"{skel.n_sticks} sticks, BIC {_selected_bic(skel):.0f}; edges (majority part): "
                         f"{', '.join(named)}"}
         # The marker set's segments as the sticks (kept: no refinement, no resampling), joints
@@ -268,7 +271,7 @@ def case_structure_mocap(ctx: Context) -> Iterator[dict[str, Any]]:
         given, timing = ctx.time(lambda: sf.fit(sub, method="em", random_state=ctx.seed, labels=sub.labels_true,
                                                 refine_sticks=False, resplit=False, dissolve_points=0,
                                                 resample_every=0))
-        yield {"dataset": f"{name} isometric 30 Hz, marker-set segments given", "method": "em",
+        yield {"dataset": f"{name} isometric {rate:g} Hz, marker-set segments given", "method": "em",
                **_score(given, sub), **timing,
                "notes": f"BIC {_selected_bic(given):.0f} against {_selected_bic(found):.0f} for the structure "
                         f"found ({found.n_sticks} sticks) on the same {sub.n_points} markers: the model's score "
