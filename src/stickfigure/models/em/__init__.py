@@ -10,6 +10,8 @@ learned by resampling assignments and greedily merging stick endpoints
 * :mod:`.initialise`: Affinity-Propagation groups -> per-stick SfM -> endpoints.
 * :mod:`.assign`: resampling of the assignments R.
 * :mod:`.structure`: the merge search, stages and model selection.
+* :mod:`.refine`: moves of points and sticks around the merge search.
+* :mod:`.impute`: imputation with a learned structure, and the held-out check.
 
 docs/em.md derives every update and documents the defaults.
 """
@@ -27,13 +29,13 @@ from ..._validation import check_labels, check_positive
 from ...skeleton import Skeleton
 from ...trajectories import Trajectories
 from ..base import StickEstimator, register
-from .initialise import fill_gaps, initial_state, interpolate_rotations
-from .model import Observations, Priors, StickState, chain_degree, normalise
+from .impute import refit_motions, start_state
+from .initialise import fill_gaps, initial_state
+from .model import Observations, Priors, StickState, normalise
 from .refine import misfit_ratios
 from .starts import Speculative
 from .structure import (EMSettings, Stage, bic, extend_frames, learn_structure, run_em, search_frames,
                         stick_edges)
-from .updates import FLAT_RATIO, update_endpoints
 
 __all__ = ["EMSkeleton", "fit_stages"]
 
@@ -117,6 +119,14 @@ class EMSkeleton(StickEstimator):
         that fit best; a different cut is kept when the selection criterion
         improves after EM (moves groups of points that the resampling, with each
         stick's motion fitted to its wrong points too, cannot). False: off.
+    holdout : float or None
+        Last, every stick of at most ``dissolve_points`` points is tried without it
+        again, now judged by prediction: this fraction of the observed entries is
+        hidden and predicted from the rest with the structure fixed (as in
+        imputation), and a dissolution is kept when it predicts them better. A
+        2-point stick fits any two 2D trajectories exactly, so the likelihood (and
+        BIC) cannot reject one that pairs markers across a body; hiding one of its
+        points shows it (docs/em.md section 6). None: off.
     max_frames : int, optional
         Run the structure search (EM, stick checks, merges) on at most this many
         evenly spaced frames, then re-fit the selected structure on all frames
@@ -162,6 +172,7 @@ class EMSkeleton(StickEstimator):
                  reuse_scores: bool = True, tol: float = 1e-4, min_stick_points: int = 3,
                  max_sticks: int | None = None, labels: Any = None, refine_sticks: bool = True,
                  articulated_rounds: int = 4, dissolve_points: int = 3, resplit: bool = True,
+                 holdout: float | None = 0.15,
                  max_frames: int | None = 400, oversegment: float | None = 3.5, n_jobs: int | None = None,
                  tau_p: float = 25.0,
                  alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e6, impute_iter: int = 100,
@@ -188,6 +199,7 @@ class EMSkeleton(StickEstimator):
         self.articulated_rounds = articulated_rounds
         self.dissolve_points = dissolve_points
         self.resplit = resplit
+        self.holdout = holdout
         self.max_frames = max_frames
         self.oversegment = oversegment
         self.n_jobs = n_jobs
@@ -222,6 +234,8 @@ class EMSkeleton(StickEstimator):
             v = getattr(self, name)
             if v is not None:
                 check_positive(v, name, integer=True, allow_zero=name == "max_merges")
+        if self.holdout is not None and not (isinstance(self.holdout, (int, float)) and 0 < self.holdout < 1):
+            raise ValueError(f"holdout must be None or a fraction in (0, 1), got {self.holdout!r}")
         if self.oversegment is not None and not (np.isfinite(self.oversegment) and self.oversegment >= 1):
             raise ValueError(f"oversegment must be None or a number >= 1, got {self.oversegment!r}")
         if self.max_frames is not None and self.max_frames < 10:
@@ -237,6 +251,7 @@ class EMSkeleton(StickEstimator):
                               reuse_scores=bool(self.reuse_scores),
                               articulated_rounds=int(self.articulated_rounds),
                               dissolve_points=int(self.dissolve_points), resplit=bool(self.resplit),
+                              holdout=None if self.holdout is None else float(self.holdout),
                               endpoint_init=self.endpoint_init, n_ends=int(self.n_ends))
         priors = Priors(tau_p=float(self.tau_p), alpha0=float(self.alpha0), beta0=float(self.beta0),
                         max_precision=float(self.max_precision))
@@ -277,18 +292,7 @@ class EMSkeleton(StickEstimator):
         n_iter = int(skeleton.params.get("impute_iter", 100))
         priors = Priors(**skeleton.info["priors"])
         settings = EMSettings(**{**skeleton.info["settings"], "tol": 0.0})
-        from .updates import em_sweep
-
-        # With fewer than 3 visible points (plus its endpoints) a frame leaves the stick's rotation
-        # open (a turn about the line through two points, a mirror): keep the interpolated one there.
-        hold = state.design(obs).n < 3
-        # Every resample_every sweeps (not in the last ones) the multi-start rotation search of
-        # training: a rotation fitted to a few nearly coplanar points can sit in the mirror
-        # branch, and the joints (endpoint terms) tell the branches apart.
-        every = max(int(settings.resample_every), 1) if settings.resample_every else 10
-        for it in range(n_iter):
-            em_sweep(state, obs, priors, precisions=False, local=False, n_procrustes=settings.n_procrustes,
-                     hold=hold, global_rotations=it % every == 0 and it < n_iter - every)
+        refit_motions(state, obs, priors, settings, n_iter)
         centre, scale = norm
         return state.point_predictions() * scale + centre
 
@@ -397,12 +401,15 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
                 info0["second_start_parallel"] = second.forked
     # Starts are compared by BIC whatever the selection: the objective has no charge for the
     # per-frame motions, so it always prefers the start with more sticks.
-    best = int(np.argmax([r[0][r[1]].bic for r in runs]))
+    # (the BIC each search reached before its held-out check: that check may lower it)
+    best = int(np.argmax([r[0][r[1]].bic if r[0][r[1]].search_bic is None else r[0][r[1]].search_bic
+                          for r in runs]))
     stages, selected, S = runs[best]
     info0["n_initial_sticks"] = S
     if len(runs) > 1:
         info0["starts"] = [{"n_initial_sticks": int(k), "n_sticks": int(stg[sel].labels.max()) + 1,
-                            "bic": float(stg[sel].bic), "objective": float(stg[sel].objective)}
+                            "bic": float(stg[sel].bic), "objective": float(stg[sel].objective),
+                            "search_bic": None if stg[sel].search_bic is None else float(stg[sel].search_bic)}
                            for stg, sel, k in runs]
         info0["start"] = best
     if frames is not None:
@@ -505,7 +512,7 @@ def _skeleton(stages: list[Stage], selected: int, norm: tuple[np.ndarray, float]
             "objective": s.objective, "bic": s.bic, "n_sticks": int(s.labels.max()) + 1,
             "labels": s.labels.tolist(), "vertex_of": s.vertex_of.tolist(), "edges": [list(e) for e in s.edges],
             "merged": None if s.merged is None else list(s.merged), "n_sweeps": s.n_sweeps,
-            "dissolved": s.dissolved, "moved": s.moved,
+            "dissolved": s.dissolved, "moved": s.moved, "heldout": s.heldout,
             "ends_xy": (s.ends_xy * scale + centre).tolist(), "joints_xy": (s.joints_xy * scale + centre).tolist(),
         } for s in stages],
         "objective_stage": int(np.argmax([s.objective for s in stages])),
@@ -531,9 +538,8 @@ def _skeleton(stages: list[Stage], selected: int, norm: tuple[np.ndarray, float]
 
 
 def _impute_state(skeleton: Skeleton, traj: Trajectories) -> tuple[StickState, Observations, tuple]:
-    """A state for new frames: fixed L, K, G, R; motions by Procrustes; vertices from endpoints."""
-    from ...geometry import orthogonal_procrustes_rows
-
+    """A state for new frames: fixed L, K, G, R; motions by Procrustes; vertices from endpoints
+    (:func:`impute.start_state`)."""
     for key in ("ends", "vertex_of", "alpha", "beta", "centre", "scale", "precisions"):
         if key not in skeleton.state:
             raise ValueError(f"the em skeleton lacks state[{key!r}]; it cannot impute (re-fit it)")
@@ -545,62 +551,9 @@ def _impute_state(skeleton: Skeleton, traj: Trajectories) -> tuple[StickState, O
     labels = skeleton.labels
     if (labels < 0).any():
         raise ValueError("the em skeleton has unassigned points; it cannot impute")
-    S = skeleton.n_sticks
-    P, F, D = xy.shape
-    local = skeleton.local / scale
-    ends = np.asarray(skeleton.state["ends"], float) / scale
-    rot = np.zeros((S, F, D, 3))
-    trans = np.zeros((S, F, D))
-    for s in range(S):  # one batched Procrustes per stick over all frames
-        idx = np.flatnonzero(labels == s)
-        m = mask[idx].T.astype(float)  # (F, n)
-        cnt = m.sum(axis=1)
-        # A rotation from a few points can sit in the wrong mirror branch: start those frames
-        # from the interpolation of the well-observed ones, and let EM refine them locally.
-        good = cnt >= max(4, int(np.ceil(0.6 * idx.size)))
-        w = np.nan_to_num(obs.w[idx]).transpose(1, 2, 0)  # (F, D, n)
-        cw = np.maximum(cnt, 1)
-        abar = np.einsum("fdn,fn->fd", w, m) / cw[:, None]
-        lbar = (m @ local[idx]) / cw[:, None]  # (F, 3)
-        A = (w - abar[..., None]) * m[:, None, :]
-        B = (local[idx].T[None] - lbar[..., None]) * m[:, None, :]
-        # The visible points alone may be nearly coplanar where the stick is not: their mirror
-        # image fits them as well and puts the hidden ones elsewhere. Such frames are
-        # interpolated like the sparse ones.
-        lam = np.linalg.eigvalsh(B @ np.swapaxes(B, 1, 2))  # (F, 3), ascending
-        Lc = local[idx] - local[idx].mean(axis=0)
-        lam_all = np.linalg.eigvalsh(Lc.T @ Lc)
-        ratio_all = lam_all[0] / max(lam_all[2], 1e-300)
-        ratio = lam[:, 0] / np.maximum(lam[:, 2], 1e-300)
-        good &= ratio >= min(FLAT_RATIO ** 2, 0.5 * ratio_all)
-        if not good.any():
-            good = cnt >= max(cnt.max(), 1)
-        R = orthogonal_procrustes_rows(A, B)
-        R = interpolate_rotations(R, good)
-        t = abar - np.einsum("fdk,fk->fd", R, lbar)
-        seen = cnt > 0
-        if not seen.all():  # no visible point: translation interpolated between frames that have one
-            si = np.flatnonzero(seen)
-            for d in range(D):
-                t[~seen, d] = np.interp(np.flatnonzero(~seen), si, t[si, d])
-        rot[s], trans[s] = R, t
-    tau_w, tau_m, tau_t = (float(v) for v in skeleton.state["precisions"])
-    vertex_of = np.asarray(skeleton.state["vertex_of"], np.int64)
-    J = int(vertex_of.max()) + 1
-    alpha0, beta0 = np.asarray(skeleton.state["alpha"], float), np.asarray(skeleton.state["beta"], float)
-    a = alpha0 / beta0
-    st = StickState(labels=labels.copy(), vertex_of=vertex_of, rot=rot, trans=trans, local=local, ends=ends,
-                    mu_e=np.zeros((ends.shape[0], F, D)), tau_e=tau_m + a[vertex_of], mu_v=np.zeros((J, F, D)),
-                    tau_v=np.ones((J, F)), alpha=alpha0.copy(), beta=beta0.copy(), tau_w=tau_w, tau_m=tau_m,
-                    tau_t=tau_t)
-    pred = st.end_predictions()
-    n = np.bincount(vertex_of, minlength=J).astype(float)
-    sums = np.zeros((J, F, D))
-    np.add.at(sums, vertex_of, pred)
-    st.mu_v = sums / n[:, None, None]
-    st.tau_v = (a * n)[:, None] + tau_t * chain_degree(F)[None, :]
-    # Scale phi's posterior to the new number of frames, keeping its mean.
-    st.alpha = float(skeleton.info.get("priors", {}).get("alpha0", 1.0)) + 0.5 * D * F * n
-    st.beta = st.alpha / a
-    update_endpoints(st)
+    st = start_state(labels, skeleton.local / scale, np.asarray(skeleton.state["ends"], float) / scale,
+                     np.asarray(skeleton.state["vertex_of"], np.int64), np.asarray(skeleton.state["alpha"], float),
+                     np.asarray(skeleton.state["beta"], float),
+                     tuple(float(v) for v in skeleton.state["precisions"]),
+                     float(skeleton.info.get("priors", {}).get("alpha0", 1.0)), obs)
     return st, obs, (centre, scale)

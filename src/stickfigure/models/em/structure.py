@@ -90,6 +90,7 @@ class EMSettings:
     articulated_rounds: int = 4
     dissolve_points: int = 3
     resplit: bool = True
+    holdout: float | None = 0.15
 
 
 # ----------------------------------------------------------------------------- EM runs
@@ -750,6 +751,8 @@ class Stage:
     refinements: list = field(default_factory=list)
     dissolved: list = field(default_factory=list)  # point sets of sticks dissolved (refine.dissolve_small_sticks)
     moved: int = 0  # points moved by refine.resplit_pairs
+    heldout: dict | None = None  # the held-out check's errors (refine.heldout_dissolve)
+    search_bic: float | None = None  # the search's best BIC, before the held-out check (compares starts)
 
 
 def _stage(st: StickState, obs: Observations, value: float, merged: tuple[int, int] | None, sweeps: int,
@@ -881,8 +884,29 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
                 v = getattr(stages[-1], crit)
                 if v > best[crit][0]:
                     best[crit] = (v, len(stages) - 1, cur.copy())
+    search_bic = best["bic"][0]
+    if settings.holdout and settings.dissolve_points:
+        # Small sticks judged by prediction (refine.heldout_dissolve): a 2-point stick fits any
+        # two trajectories, so the likelihood cannot reject one that pairs markers across a body.
+        # A dissolution kept here is selected whatever its BIC. Its own generator, so that the
+        # check leaves the stream of rng (the refit on all frames) as it was.
+        from .refine import heldout_dissolve
+
+        try:
+            hrng = rng.spawn(1)[0]
+        except TypeError:  # a bit generator without a seed sequence
+            hrng = np.random.default_rng(int(rng.integers(2**63 - 1)))
+        _, at, cur = best[selection]
+        cur, val, n, gone, hinfo = heldout_dissolve(cur.copy(), obs, priors, settings, hrng, stages[at].objective,
+                                                    settings.dissolve_points, settings.holdout)
+        if gone:
+            stages.append(_stage(cur, obs, val, None, n, ref))
+            stages[-1].dissolved = gone
+            stages[-1].heldout = hinfo
+            best[selection] = (getattr(stages[-1], selection), len(stages) - 1, cur.copy())
     for crit in ("objective", "bic"):
         stages[best[crit][1]].state = best[crit][2]
+    stages[best[selection][1]].search_bic = search_bic
     return stages, best[selection][1]
 
 

@@ -1,0 +1,150 @@
+"""Imputation with a learned structure, and the held-out check built on it.
+
+:func:`start_state` and :func:`refit_motions` are what :meth:`Skeleton.impute`
+runs for em (docs/em.md section 8): L, K, G and R fixed, motions re-estimated
+from the visible points only. :func:`heldout_error` runs the same on a model's
+own training data with some entries hidden, which measures how well a
+structure predicts points it does not see (section 6, the held-out check of
+small sticks).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .initialise import interpolate_rotations
+from .model import Observations, Priors, StickState, chain_degree
+from .updates import FLAT_RATIO, em_sweep, update_endpoints
+
+__all__ = ["start_state", "refit_motions", "heldout_error"]
+
+
+def start_state(labels: np.ndarray, local: np.ndarray, ends: np.ndarray, vertex_of: np.ndarray,
+                alpha: np.ndarray, beta: np.ndarray, precisions: tuple[float, float, float], alpha0: float,
+                obs: Observations) -> StickState:
+    """A state for the frames of ``obs`` (normalised units): fixed L, K, G, R; motions by Procrustes.
+
+    Parameters
+    ----------
+    labels : (P,) stick of every point; local : (P, 3) L; ends : (ES, 3) K; vertex_of : (ES,) G
+    alpha, beta : (J,) the trained posterior of the vertex precisions phi
+    precisions : (tau_w, tau_m, tau_t) of training
+    alpha0 : the Gamma prior's shape (phi's posterior is rescaled to the new frame count)
+    obs : the new observations
+
+    Motions start from a per-frame Procrustes fit of each stick's shape to its visible
+    points where it shows at least 4 points and 60 % of them, and those are not nearly
+    coplanar; elsewhere the rotation is interpolated (slerp) and the translation taken
+    from the visible points (interpolated where none is). Vertices start at the mean
+    of their endpoints' predictions.
+    """
+    from ...geometry import orthogonal_procrustes_rows
+
+    mask = obs.mask > 0
+    S = int(labels.max()) + 1
+    P, F, D = obs.w.shape
+    rot = np.zeros((S, F, D, 3))
+    trans = np.zeros((S, F, D))
+    for s in range(S):  # one batched Procrustes per stick over all frames
+        idx = np.flatnonzero(labels == s)
+        m = mask[idx].T.astype(float)  # (F, n)
+        cnt = m.sum(axis=1)
+        # A rotation from a few points can sit in the wrong mirror branch: start those frames
+        # from the interpolation of the well-observed ones, and let EM refine them locally.
+        good = cnt >= max(4, int(np.ceil(0.6 * idx.size)))
+        w = obs.w[idx].transpose(1, 2, 0)  # (F, D, n), 0 where missing
+        cw = np.maximum(cnt, 1)
+        abar = np.einsum("fdn,fn->fd", w, m) / cw[:, None]
+        lbar = (m @ local[idx]) / cw[:, None]  # (F, 3)
+        A = (w - abar[..., None]) * m[:, None, :]
+        B = (local[idx].T[None] - lbar[..., None]) * m[:, None, :]
+        # The visible points alone may be nearly coplanar where the stick is not: their mirror
+        # image fits them as well and puts the hidden ones elsewhere. Such frames are
+        # interpolated like the sparse ones.
+        lam = np.linalg.eigvalsh(B @ np.swapaxes(B, 1, 2))  # (F, 3), ascending
+        Lc = local[idx] - local[idx].mean(axis=0)
+        lam_all = np.linalg.eigvalsh(Lc.T @ Lc)
+        ratio_all = lam_all[0] / max(lam_all[2], 1e-300)
+        ratio = lam[:, 0] / np.maximum(lam[:, 2], 1e-300)
+        good &= ratio >= min(FLAT_RATIO ** 2, 0.5 * ratio_all)
+        if not good.any():
+            good = cnt >= max(cnt.max(), 1)
+        R = orthogonal_procrustes_rows(A, B)
+        R = interpolate_rotations(R, good)
+        t = abar - np.einsum("fdk,fk->fd", R, lbar)
+        seen = cnt > 0
+        if not seen.all():  # no visible point: translation interpolated between frames that have one
+            si = np.flatnonzero(seen)
+            for d in range(D):
+                t[~seen, d] = np.interp(np.flatnonzero(~seen), si, t[si, d])
+        rot[s], trans[s] = R, t
+    tau_w, tau_m, tau_t = (float(v) for v in precisions)
+    vertex_of = np.asarray(vertex_of, np.int64)
+    J = int(vertex_of.max()) + 1
+    a = np.asarray(alpha, float) / np.asarray(beta, float)
+    st = StickState(labels=labels.copy(), vertex_of=vertex_of.copy(), rot=rot, trans=trans, local=local.copy(),
+                    ends=ends.copy(), mu_e=np.zeros((ends.shape[0], F, D)), tau_e=tau_m + a[vertex_of],
+                    mu_v=np.zeros((J, F, D)), tau_v=np.ones((J, F)), alpha=np.asarray(alpha, float).copy(),
+                    beta=np.asarray(beta, float).copy(), tau_w=tau_w, tau_m=tau_m, tau_t=tau_t)
+    pred = st.end_predictions()
+    n = np.bincount(vertex_of, minlength=J).astype(float)
+    sums = np.zeros((J, F, D))
+    np.add.at(sums, vertex_of, pred)
+    st.mu_v = sums / n[:, None, None]
+    st.tau_v = (a * n)[:, None] + tau_t * chain_degree(F)[None, :]
+    # Scale phi's posterior to the new number of frames, keeping its mean.
+    st.alpha = float(alpha0) + 0.5 * D * F * n
+    st.beta = st.alpha / a
+    update_endpoints(st)
+    return st
+
+
+def refit_motions(st: StickState, obs: Observations, priors: Priors, settings: Any, n_iter: int) -> StickState:
+    """``n_iter`` EM iterations with L, K, the structure and the precisions fixed (in place).
+
+    In frames where a stick shows fewer than 3 points its rotation keeps its start
+    (the model has no prior on motions, so such a frame cannot pin it down: a turn
+    about the line through two points, a mirror) while its translation is updated.
+    Every ``settings.resample_every`` sweeps, except in the last ones, the multi-start
+    rotation search of training runs too: a rotation fitted to a few nearly coplanar
+    points can sit in the mirror branch, and the joints (endpoint terms) tell the
+    branches apart.
+    """
+    hold = st.design(obs).n < 3
+    every = max(int(settings.resample_every), 1) if settings.resample_every else 10
+    for it in range(n_iter):
+        em_sweep(st, obs, priors, precisions=False, local=False, n_procrustes=settings.n_procrustes,
+                 hold=hold, global_rotations=it % every == 0 and it < n_iter - every)
+    return st
+
+
+def heldout_error(st: StickState, obs: Observations, priors: Priors, settings: Any, hidden: np.ndarray,
+                  n_iter: int = 50) -> np.ndarray:
+    """Squared error of a model's prediction of the entries ``hidden`` from the others.
+
+    The model's L, K, G, R and precisions are kept; its motions are re-estimated
+    from the visible entries as in imputation (:func:`start_state`,
+    :func:`refit_motions`), so nothing it learned from a hidden entry's own frame
+    reaches the prediction except through the time-invariant shapes.
+
+    Parameters
+    ----------
+    hidden : ndarray of bool, shape (P, F)
+        Entries to hide (only observed ones count).
+
+    Returns
+    -------
+    ndarray, shape (P,)
+        Each point's ``sum over its hidden observed entries |w - R l - t|^2``
+        (normalised units).
+    """
+    hid = np.asarray(hidden, bool) & (obs.mask > 0)
+    keep = obs.mask * ~hid
+    sub = Observations(obs.w * keep[..., None], keep)
+    start = start_state(st.labels, st.local, st.ends, st.vertex_of, st.alpha, st.beta,
+                        (st.tau_w, st.tau_m, st.tau_t), priors.alpha0, sub)
+    refit_motions(start, sub, priors, settings, n_iter)
+    err = np.sum((start.point_predictions() - obs.w) ** 2, axis=2)
+    return np.sum(np.where(hid, err, 0.0), axis=1)
