@@ -520,6 +520,19 @@ def dissolve_stick(st: StickState, obs: Observations, priors: Priors, s: int) ->
     return out
 
 
+def _next_small_stick(st: StickState, order: np.ndarray, max_points: int, tried: set
+                      ) -> tuple[int, tuple[int, ...]] | None:
+    """The first stick in ``order`` with at most ``max_points`` points whose point set is not in
+    ``tried`` (which it joins), as (stick, point set); None when there is none."""
+    sizes = np.bincount(st.labels, minlength=st.n_sticks)
+    for s in order:
+        key = tuple(np.flatnonzero(st.labels == s).tolist())
+        if sizes[s] <= max_points and key not in tried:
+            tried.add(key)
+            return int(s), key
+    return None
+
+
 def _dissolve_loss(st: StickState, obs: Observations, priors: Priors, s: int) -> float:
     """Loss of fit, in units of the noise (``RSS / (2 sigma^2)``), when the points of stick ``s``
     move to their best other sticks with all motions fixed."""
@@ -563,14 +576,11 @@ def dissolve_small_sticks(st: StickState, obs: Observations, priors: Priors, set
     done: list[list[int]] = []
     sweeps = 0
     while st.n_sticks > 1:
-        sizes = np.bincount(st.labels, minlength=st.n_sticks)
-        todo = [int(s) for s in np.argsort(sizes, kind="stable") if sizes[s] <= max_points
-                and tuple(np.flatnonzero(st.labels == s)) not in tried]
-        if not todo:
+        nxt = _next_small_stick(st, np.argsort(np.bincount(st.labels, minlength=st.n_sticks), kind="stable"),
+                                max_points, tried)
+        if nxt is None:
             break
-        s = todo[0]
-        key = tuple(np.flatnonzero(st.labels == s))
-        tried.add(key)
+        s, key = nxt
         # Cheap test first: the points' fit on their best other sticks (motions fixed, local
         # coordinates refitted) may lose at most LOOSE_FACTOR times the parameters saved
         # (a real segment's points fit the other sticks far worse).
@@ -623,18 +633,14 @@ def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings
     sweeps = 0
     n_hid = hidden.sum(axis=1)
     while st.n_sticks > 1:
-        sizes = np.bincount(st.labels, minlength=st.n_sticks)
         # The worst-predicted stick first: a stick that pairs markers across the body also
         # spoils the prediction of the sticks jointed to it, which may be right.
         worst = np.bincount(st.labels, weights=err, minlength=st.n_sticks) / np.maximum(
             np.bincount(st.labels, weights=n_hid, minlength=st.n_sticks), 1)
-        todo = [int(s) for s in np.argsort(-worst, kind="stable") if sizes[s] <= max_points
-                and tuple(np.flatnonzero(st.labels == s)) not in tried]
-        if not todo:
+        nxt = _next_small_stick(st, np.argsort(-worst, kind="stable"), max_points, tried)
+        if nxt is None:
             break
-        s = todo[0]
-        key = tuple(np.flatnonzero(st.labels == s))
-        tried.add(key)
+        s, key = nxt
         trial = dissolve_stick(st, obs, priors, s)
         trial, val, n = run_em(trial, obs, priors, settings, trial_iter, rng)
         sweeps += n
