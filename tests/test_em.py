@@ -359,8 +359,8 @@ def test_heldout_error_predicts_hidden_entries_only(chain):
 
 
 def test_cross_body_two_point_stick_is_dissolved_by_prediction():
-    # Known answer: the far ends of the first and last parts of a 4-part chain, given a stick of
-    # their own, pair two points that share no joint (what em did to CMU markers, LTHI + C7).
+    # Known answer: the far ends of two leaf parts of a 4-part figure, given a stick of their
+    # own, pair two points that share no joint (what em did to CMU markers, LTHI + C7).
     # Without resampling or refinement the search keeps it; in 2D it fits its two points
     # exactly. The held-out check hides entries and predicts them with the structure fixed:
     # with one of its points hidden the other leaves the stick's rotation open, so it must be
@@ -589,7 +589,7 @@ def test_cmu_isometric_view_gives_a_body_tree(data_dir):
     # markers, the shank with the foot, ...), and every edge must join two sticks whose
     # segments meet in the body. Without the held-out check the likelihood kept 2-point sticks
     # that pair markers across the body (LTHI + C7, RTHI + LSHO, RELB + RFIN: thigh and neck,
-    # hand and elbow of different sides' chains) and the tree joined a leg to the neck;
+    # thigh and shoulder, elbow and finger) and the tree joined a leg to the neck;
     # measured with it: 8 sticks, pelvis-thorax-head, pelvis-legs, thorax-arms, all
     # anatomical (docs/em.md section 11).
     traj = sf.load(data_dir / "mocap" / "85_02.c3d").drop_unobserved().subsample(4).project("isometric")
