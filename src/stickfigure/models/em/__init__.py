@@ -34,8 +34,8 @@ from .initialise import fill_gaps, initial_state
 from .model import Observations, Priors, StickState, normalise
 from .refine import misfit_ratios
 from .starts import Speculative
-from .structure import (EMSettings, Stage, bic, extend_frames, learn_structure, run_em, search_frames,
-                        stick_edges)
+from .structure import (EMSettings, Stage, bic, child_rng, extend_frames, learn_structure, run_em,
+                        search_frames, stick_edges)
 
 __all__ = ["EMSkeleton", "fit_stages"]
 
@@ -377,10 +377,7 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
         # The finer start draws from its own generator, so it gives the same result whether it
         # runs beside the first search (a forked process, started before the first search
         # knows whether it is needed) or after it; spawning does not advance rng's stream.
-        try:
-            rng_fine = rng.spawn(1)[0]
-        except TypeError:  # a bit generator without a seed sequence
-            rng_fine = np.random.default_rng(int(rng.integers(2**63 - 1)))
+        rng_fine = child_rng(rng)
         n_jobs = available_cpus() if n_jobs is None else n_jobs
         second = Speculative(lambda: search(starts[1], rng_fine, 1, show=False), parallel=n_jobs > 1,
                              here=lambda: search(starts[1], rng_fine, 1), name="the second structure search")
@@ -402,14 +399,13 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
     # Starts are compared by BIC whatever the selection: the objective has no charge for the
     # per-frame motions, so it always prefers the start with more sticks.
     # (the BIC each search reached before its held-out check: that check may lower it)
-    best = int(np.argmax([r[0][r[1]].bic if r[0][r[1]].search_bic is None else r[0][r[1]].search_bic
-                          for r in runs]))
+    best = int(np.argmax([r[0][r[1]].search_bic for r in runs]))
     stages, selected, S = runs[best]
     info0["n_initial_sticks"] = S
     if len(runs) > 1:
         info0["starts"] = [{"n_initial_sticks": int(k), "n_sticks": int(stg[sel].labels.max()) + 1,
                             "bic": float(stg[sel].bic), "objective": float(stg[sel].objective),
-                            "search_bic": None if stg[sel].search_bic is None else float(stg[sel].search_bic)}
+                            "search_bic": float(stg[sel].search_bic)}
                            for stg, sel, k in runs]
         info0["start"] = best
     if frames is not None:

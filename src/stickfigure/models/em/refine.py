@@ -619,11 +619,13 @@ def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings
 
     Returns the state, its objective, the EM sweeps run, the point sets of the
     dissolved sticks, and ``{"fraction", "error_before", "error_after"}`` (RMS per
-    hidden coordinate, normalised units).
+    hidden coordinate, normalised units; None when no stick is small enough to try).
     """
     from .impute import heldout_error
     from .structure import run_em
 
+    if not np.any(np.bincount(st.labels, minlength=st.n_sticks) <= max_points):  # nothing to try
+        return st, value, 0, [], {"fraction": float(fraction), "error_before": None, "error_after": None}
     hidden = (rng.random(obs.mask.shape) < fraction) & (obs.mask > 0)
     n_hidden = max(int(hidden.sum()) * obs.n_dims, 1)
     trial_iter = settings.n_iter if trial_iter is None else trial_iter

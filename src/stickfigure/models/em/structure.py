@@ -93,6 +93,15 @@ class EMSettings:
     holdout: float | None = 0.15
 
 
+def child_rng(rng: np.random.Generator) -> np.random.Generator:
+    """An independent generator drawn from ``rng`` without advancing its stream (``spawn``);
+    for a bit generator without a seed sequence, seeded from ``rng``'s stream instead."""
+    try:
+        return rng.spawn(1)[0]
+    except TypeError:
+        return np.random.default_rng(int(rng.integers(2**63 - 1)))
+
+
 # ----------------------------------------------------------------------------- EM runs
 def run_em(st: StickState, obs: Observations, priors: Priors, settings: EMSettings, n_iter: int,
            rng: np.random.Generator, *, resample: bool = True, precisions: bool = True,
@@ -884,7 +893,8 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
                 v = getattr(stages[-1], crit)
                 if v > best[crit][0]:
                     best[crit] = (v, len(stages) - 1, cur.copy())
-    search_bic = best["bic"][0]
+    # The selected stage's BIC before the held-out check: what the two starts are compared by.
+    search_bic = stages[best[selection][1]].bic
     if settings.holdout and settings.dissolve_points:
         # Small sticks judged by prediction (refine.heldout_dissolve): a 2-point stick fits any
         # two trajectories, so the likelihood cannot reject one that pairs markers across a body.
@@ -892,12 +902,9 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
         # check leaves the stream of rng (the refit on all frames) as it was.
         from .refine import heldout_dissolve
 
-        try:
-            hrng = rng.spawn(1)[0]
-        except TypeError:  # a bit generator without a seed sequence
-            hrng = np.random.default_rng(int(rng.integers(2**63 - 1)))
         _, at, cur = best[selection]
-        cur, val, n, gone, hinfo = heldout_dissolve(cur.copy(), obs, priors, settings, hrng, stages[at].objective,
+        cur, val, n, gone, hinfo = heldout_dissolve(cur.copy(), obs, priors, settings, child_rng(rng),
+                                                    stages[at].objective,
                                                     settings.dissolve_points, settings.holdout)
         if gone:
             stages.append(_stage(cur, obs, val, None, n, ref))
