@@ -73,7 +73,9 @@ def interpolate_rotations(R: np.ndarray, good: np.ndarray) -> np.ndarray:
     F, D, _ = R.shape
     if good.all() or not good.any():
         return R
-    q = rot_to_quat(complete_rotation(R))
+    # Only the good frames' rotations are read (the others may be unset, all zero).
+    q = np.zeros((F, 4))
+    q[good] = rot_to_quat(complete_rotation(R[good]))
     return quat_to_rot(slerp_fill(q, good))[:, :D, :]
 
 

@@ -39,6 +39,7 @@ from typing import Any
 
 import numpy as np
 from scipy.linalg import solveh_banded
+from scipy.spatial.transform import Rotation
 
 from .model import Observations, Priors, StickState, chain_degree
 
@@ -188,40 +189,19 @@ def _trace3(M: np.ndarray) -> np.ndarray:
 
 
 def quat_to_rot(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) of unit quaternions (..., 4) = (w, x, y, z)."""
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    ww, xx, yy, zz = w * w, x * x, y * y, z * z
-    xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
-    R = np.empty(q.shape[:-1] + (3, 3))
-    R[..., 0, 0] = ww + xx - yy - zz
-    R[..., 0, 1] = 2 * (xy - wz)
-    R[..., 0, 2] = 2 * (xz + wy)
-    R[..., 1, 0] = 2 * (xy + wz)
-    R[..., 1, 1] = ww - xx + yy - zz
-    R[..., 1, 2] = 2 * (yz - wx)
-    R[..., 2, 0] = 2 * (xz - wy)
-    R[..., 2, 1] = 2 * (yz + wx)
-    R[..., 2, 2] = ww - xx - yy + zz
-    return R
+    """Rotation matrices (..., 3, 3) of unit quaternions (..., 4) = (w, x, y, z) (scipy's Rotation)."""
+    out = np.zeros(q.shape[:-1] + (3, 3))
+    if out.size:  # scipy's (x, y, z, w) order; scalar_first needs scipy 1.14
+        out[:] = Rotation.from_quat(q.reshape(-1, 4)[:, [1, 2, 3, 0]]).as_matrix().reshape(out.shape)
+    return out
 
 
 def rot_to_quat(R: np.ndarray) -> np.ndarray:
-    """Unit quaternions (..., 4) of proper rotations (..., 3, 3) (Shepperd's method, vectorised)."""
-    m = R
-    tr = _trace3(m)
-    cand = np.stack([
-        np.stack([1 + tr, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1),
-        np.stack([m[..., 2, 1] - m[..., 1, 2], 1 + 2 * m[..., 0, 0] - tr, m[..., 0, 1] + m[..., 1, 0],
-                  m[..., 0, 2] + m[..., 2, 0]], -1),
-        np.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 0, 1] + m[..., 1, 0], 1 + 2 * m[..., 1, 1] - tr,
-                  m[..., 1, 2] + m[..., 2, 1]], -1),
-        np.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1],
-                  1 + 2 * m[..., 2, 2] - tr], -1),
-    ], -2)  # row k is 4 q_k q
-    diag = np.stack([1 + tr, 1 + 2 * m[..., 0, 0] - tr, 1 + 2 * m[..., 1, 1] - tr, 1 + 2 * m[..., 2, 2] - tr], -1)
-    k = np.argmax(diag, axis=-1)
-    q = np.take_along_axis(cand, k[..., None, None], axis=-2)[..., 0, :]
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+    """Unit quaternions (..., 4) = (w, x, y, z) of proper rotations (..., 3, 3) (scipy's Rotation)."""
+    out = np.zeros(R.shape[:-2] + (4,))
+    if out.size:
+        out[:] = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat()[:, [3, 0, 1, 2]].reshape(out.shape)
+    return out
 
 
 def complete_rotation(R: np.ndarray) -> np.ndarray:
@@ -301,24 +281,10 @@ def _solve3(H: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _rodrigues(w: np.ndarray) -> np.ndarray:
-    """exp([w]_x), shape (..., 3, 3): ``I + s K + c K^2`` with ``K^2 = w w^T - |w|^2 I``."""
-    th2 = np.sum(w * w, axis=-1)
-    th = np.sqrt(th2)
-    small = th2 < 1e-16
-    s = np.where(small, 1.0 - th2 / 6.0, np.sin(th) / np.where(small, 1.0, th))
-    c = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(th)) / np.where(small, 1.0, th2))
-    x, y, z = w[..., 0], w[..., 1], w[..., 2]
-    cx, cy = c * x, c * y
-    out = np.empty(w.shape[:-1] + (3, 3))
-    out[..., 0, 0] = 1.0 - c * (th2 - x * x)
-    out[..., 1, 1] = 1.0 - c * (th2 - y * y)
-    out[..., 2, 2] = 1.0 - c * (th2 - z * z)
-    out[..., 0, 1] = cx * y - s * z
-    out[..., 1, 0] = cx * y + s * z
-    out[..., 0, 2] = cx * z + s * y
-    out[..., 2, 0] = cx * z - s * y
-    out[..., 1, 2] = cy * z - s * x
-    out[..., 2, 1] = cy * z + s * x
+    """exp([w]_x), shape (..., 3, 3), of rotation vectors w (..., 3) (scipy's Rotation)."""
+    out = np.zeros(w.shape[:-1] + (3, 3))
+    if out.size:
+        out[:] = Rotation.from_rotvec(w.reshape(-1, 3)).as_matrix().reshape(out.shape)
     return out
 
 
