@@ -122,7 +122,8 @@ class EMSkeleton(StickEstimator):
     holdout : float or None
         Last, every stick of at most ``dissolve_points`` points is tried without it
         again, now judged by prediction: this fraction of the observed entries is
-        hidden and predicted from the rest with the structure fixed (as in
+        hidden as occlusions hide them (half by a sweeping bar, half at random) and
+        predicted from the rest with the structure fixed (as in
         imputation), and a dissolution is kept when it predicts them better. A
         2-point stick fits any two 2D trajectories exactly, so the likelihood (and
         BIC) cannot reject one that pairs markers across a body; hiding one of its

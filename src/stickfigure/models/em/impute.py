@@ -71,7 +71,8 @@ def start_state(labels: np.ndarray, local: np.ndarray, ends: np.ndarray, vertex_
         good &= ratio >= min(FLAT_RATIO ** 2, 0.5 * ratio_all)
         if not good.any():
             good = cnt >= max(cnt.max(), 1)
-        R = orthogonal_procrustes_rows(A, B)
+        R = np.zeros((F, D, 3))  # the other frames are interpolated: not solved for
+        R[good] = orthogonal_procrustes_rows(A[good], B[good])
         R = interpolate_rotations(R, good)
         t = abar - np.einsum("fdk,fk->fd", R, lbar)
         seen = cnt > 0
@@ -104,15 +105,21 @@ def start_state(labels: np.ndarray, local: np.ndarray, ends: np.ndarray, vertex_
 def refit_motions(st: StickState, obs: Observations, priors: Priors, settings: Any, n_iter: int) -> StickState:
     """``n_iter`` EM iterations with L, K, the structure and the precisions fixed (in place).
 
-    In frames where a stick shows fewer than 3 points its rotation keeps its start
-    (the model has no prior on motions, so such a frame cannot pin it down: a turn
-    about the line through two points, a mirror) while its translation is updated.
+    In frames where a stick's visible points and its joints (endpoints on a vertex
+    shared with another stick) number fewer than 3, its rotation keeps its start (the
+    model has no prior on motions, so such a frame cannot pin it down: a turn about
+    the line through two points, a mirror) while its translation is updated. A
+    2-point stick with both ends jointed is thus fitted in every frame that shows one
+    of its points (holding it instead kept its rotation at the interpolation between
+    frames that show both, which a long occlusion makes a guess).
     Every ``settings.resample_every`` sweeps, except in the last ones, the multi-start
     rotation search of training runs too: a rotation fitted to a few nearly coplanar
     points can sit in the mirror branch, and the joints (endpoint terms) tell the
     branches apart.
     """
-    hold = st.design(obs).n < 3
+    # A joint (an endpoint on a vertex shared with another stick) pins a point of the stick too.
+    joined = (st.vertex_counts() >= 2)[st.vertex_of].reshape(st.n_sticks, -1).sum(axis=1)
+    hold = st.design(obs).n + joined[:, None] < 3
     every = max(int(settings.resample_every), 1) if settings.resample_every else 10
     for it in range(n_iter):
         em_sweep(st, obs, priors, precisions=False, local=False, n_procrustes=settings.n_procrustes,

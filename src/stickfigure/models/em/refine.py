@@ -27,6 +27,8 @@ from typing import Callable
 
 import numpy as np
 
+from ...synthetic import occlude
+from ...trajectories import Trajectories
 from .initialise import initial_state
 from .model import Observations, Priors, StickState
 from .updates import MIN_ROTATION_POINTS, em_sweep
@@ -614,8 +616,9 @@ def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings
     than ``margin`` (relative squared error); the other points' errors move with the
     EM re-run only, and on a scene with a few badly predicted points that noise
     would decide. The held-out error (:func:`impute.heldout_error`) hides the same
-    random ``fraction`` of the observed entries in every comparison and predicts
-    them from the rest with the structure fixed, as imputation does.
+    ``fraction`` of the observed entries in every comparison, as occlusions hide them
+    (:func:`stickfigure.synthetic.occlude`: a sweeping bar, then random drop-outs, half
+    each), and predicts them from the rest with the structure fixed, as imputation does.
 
     Returns the state, its objective, the EM sweeps run, the point sets of the
     dissolved sticks, and ``{"fraction", "error_before", "error_after"}`` (RMS per
@@ -626,7 +629,13 @@ def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings
 
     if not np.any(np.bincount(st.labels, minlength=st.n_sticks) <= max_points):  # nothing to try
         return st, value, 0, [], {"fraction": float(fraction), "error_before": None, "error_after": None}
-    hidden = (rng.random(obs.mask.shape) < fraction) & (obs.mask > 0)
+    # Hidden as occlusions are (synthetic.occlude: a sweeping bar, then random drop-outs, half
+    # the fraction each): with entries hidden one at a time, a stick's rotation is interpolated
+    # across one-frame gaps, which predicts well whatever the structure; a bar hides runs of
+    # frames and neighbouring points together, where only the structure can predict them.
+    xy = np.where(obs.mask[..., None] > 0, obs.w, np.nan)
+    _, hidden = occlude(Trajectories(xy), seed=rng, bar_fraction=0.5 * fraction, random_fraction=0.5 * fraction)
+    hidden &= obs.mask > 0
     n_hidden = max(int(hidden.sum()) * obs.n_dims, 1)
     trial_iter = settings.n_iter if trial_iter is None else trial_iter
     err = first = heldout_error(st, obs, priors, settings, hidden)  # (P,)
