@@ -285,7 +285,8 @@ class EMSkeleton(StickEstimator):
         taken from the visible points, or interpolated where none is visible.
         Then ``impute_iter`` EM iterations (local updates only, so each frame stays
         in the branch it starts in) update endpoints, vertices, vertex precisions
-        and motions; in frames where a stick shows fewer than 3 points its
+        and motions; in frames where a stick's visible points and its joints
+        (endpoints on a vertex shared with another stick) number fewer than 3 its
         rotation keeps the interpolated value (the model has no prior on motions,
         so such a frame cannot pin it down) while its translation is updated.
         """
