@@ -628,8 +628,11 @@ def orthogonal_procrustes_rows(A: Any, B: Any, weights: Any = None, *, n_iter: i
     3 - d missing rows of A as unknowns ``Z``; alternately set ``Z`` to the model's
     prediction (the last rows of ``Q B`` for the current 3x3 orthogonal ``Q``) and
     ``Q`` to the polar factor of ``[A; Z] W B^T``. Each step cannot increase the
-    objective; it starts from the SVD solution and runs, vectorised over the
-    batch, until the largest relative change is below ``tol``.
+    objective, but the iteration has stationary points that are not minima, so it
+    runs from the SVD solution and from that solution turned a quarter turn about
+    each of its axes, vectorised over the batch, each problem until its relative
+    change is below ``tol``, and the best of the four is kept (a problem's answer
+    does not depend on the others in the batch).
 
     Parameters
     ----------
