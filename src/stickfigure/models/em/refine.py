@@ -608,7 +608,8 @@ def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings
     likelihood can reject one that pairs markers across a body: on CMU 85_02 the
     model scores such a structure 20 000-30 000 BIC units above the body's own
     segments. Hide one of its points, though, and the other point and its joints
-    leave its rotation open: that point is predicted hundreds of millimetres off
+    (which a cross-body stick has no reason to keep) do not place it: that point is
+    predicted hundreds of millimetres off
     (docs/em.md section 11). So each stick of at most ``max_points`` points
     (the worst predicted first, each point set once) is dissolved (:func:`dissolve_stick`, then an
     EM run of ``trial_iter`` sweeps) and the result kept when it predicts the points
@@ -635,7 +636,6 @@ def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings
     # frames and neighbouring points together, where only the structure can predict them.
     xy = np.where(obs.mask[..., None] > 0, obs.w, np.nan)
     _, hidden = occlude(Trajectories(xy), seed=rng, bar_fraction=0.5 * fraction, random_fraction=0.5 * fraction)
-    hidden &= obs.mask > 0
     n_hidden = max(int(hidden.sum()) * obs.n_dims, 1)
     trial_iter = settings.n_iter if trial_iter is None else trial_iter
     err = first = heldout_error(st, obs, priors, settings, hidden)  # (P,)
