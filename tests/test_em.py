@@ -102,6 +102,34 @@ def test_impute_held_out_frames(chain, fitted):
     assert rmse < 0.1 * spread
 
 
+def test_impute_names_a_stick_hidden_in_every_frame(chain, fitted):
+    # Its pose cannot come from anywhere: a clear error, not numpy's "array of sample points
+    # is empty" from deep inside the start (as before).
+    xy = chain.xy.copy()
+    xy[fitted.labels_ == 0] = np.nan
+    with pytest.raises(ValueError, match=r"stick 0 \(points .*\) is not visible in any frame"):
+        fitted.impute(xy)
+
+
+def test_start_state_with_a_stick_hidden_in_every_frame(chain, fitted):
+    # The held-out check may hide every entry of a small stick: the imputation start must not
+    # fail there (it gave numpy's "array of sample points is empty"); the stick gets a
+    # placeholder pose, which its joints move in EM.
+    from stickfigure.models.em.impute import start_state
+    from stickfigure.models.em.model import Observations
+
+    sk = fitted.skeleton_
+    scale, centre = float(sk.state["scale"]), np.asarray(sk.state["centre"], float)
+    seen = (sk.labels != 0)[:, None] & chain.observed
+    obs = Observations(np.where(seen[..., None], (chain.xy - centre) / scale, 0.0), seen.astype(float))
+    st = start_state(sk.labels, sk.local / scale, np.asarray(sk.state["ends"], float) / scale,
+                     np.asarray(sk.state["vertex_of"], np.int64), np.asarray(sk.state["alpha"], float),
+                     np.asarray(sk.state["beta"], float), tuple(float(v) for v in sk.state["precisions"]), 1.0, obs)
+    assert np.all(np.isfinite(st.point_predictions()))
+    RRt = st.rot[0] @ np.swapaxes(st.rot[0], 1, 2)
+    np.testing.assert_allclose(RRt, np.broadcast_to(np.eye(2), RRt.shape))
+
+
 def test_missing_training_data(chain):
     rng = np.random.default_rng(0)
     xy = chain.xy.copy()

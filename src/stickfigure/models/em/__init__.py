@@ -549,6 +549,11 @@ def _impute_state(skeleton: Skeleton, traj: Trajectories) -> tuple[StickState, O
     labels = skeleton.labels
     if (labels < 0).any():
         raise ValueError("the em skeleton has unassigned points; it cannot impute")
+    for s in range(skeleton.n_sticks):  # a stick's pose in a frame comes from its own points
+        pts = np.flatnonzero(labels == s)
+        if not mask[pts].any():
+            raise ValueError(f"stick {s} (points {pts.tolist()}) is not visible in any frame given; em cannot "
+                             "place it (give frames where at least one of its points is seen)")
     st = start_state(labels, skeleton.local / scale, np.asarray(skeleton.state["ends"], float) / scale,
                      np.asarray(skeleton.state["vertex_of"], np.int64), np.asarray(skeleton.state["alpha"], float),
                      np.asarray(skeleton.state["beta"], float),

@@ -51,6 +51,9 @@ def start_state(labels: np.ndarray, local: np.ndarray, ends: np.ndarray, vertex_
         idx = np.flatnonzero(labels == s)
         m = mask[idx].T.astype(float)  # (F, n)
         cnt = m.sum(axis=1)
+        if not cnt.any():  # never visible here (the held-out check may hide all of a small stick):
+            rot[s] = np.eye(3)[:D]  # no pose to start from; its joints, if any, move it in EM
+            continue
         # A rotation from a few points can sit in the wrong mirror branch: start those frames
         # from the interpolation of the well-observed ones, and let EM refine them locally.
         good = cnt >= max(4, int(np.ceil(0.6 * idx.size)))
