@@ -128,6 +128,13 @@ class EMSkeleton(StickEstimator):
         2-point stick fits any two 2D trajectories exactly, so the likelihood (and
         BIC) cannot reject one that pairs markers across a body; hiding one of its
         points shows it (docs/em.md section 6). None: off.
+    reattach : bool
+        Finally, sub-tree moves: a joint is cut where a part of the tree has a
+        clearly better least-squares joint with a stick on the other side (residual
+        below 0.8 times the current one), the merges linking the two parts are scored
+        as in the search, and the best one is kept when it is not the old link and
+        the selection criterion improves after EM (the greedy search never undoes a
+        merge; docs/em.md section 6). False: off.
     max_frames : int, optional
         Run the structure search (EM, stick checks, merges) on at most this many
         evenly spaced frames, then re-fit the selected structure on all frames
@@ -173,7 +180,7 @@ class EMSkeleton(StickEstimator):
                  reuse_scores: bool = True, tol: float = 1e-4, min_stick_points: int = 3,
                  max_sticks: int | None = None, labels: Any = None, refine_sticks: bool = True,
                  articulated_rounds: int = 4, dissolve_points: int = 3, resplit: bool = True,
-                 holdout: float | None = 0.15,
+                 holdout: float | None = 0.15, reattach: bool = True,
                  max_frames: int | None = 400, oversegment: float | None = 3.5, n_jobs: int | None = None,
                  tau_p: float = 25.0,
                  alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e6, impute_iter: int = 100,
@@ -201,6 +208,7 @@ class EMSkeleton(StickEstimator):
         self.dissolve_points = dissolve_points
         self.resplit = resplit
         self.holdout = holdout
+        self.reattach = reattach
         self.max_frames = max_frames
         self.oversegment = oversegment
         self.n_jobs = n_jobs
@@ -253,6 +261,7 @@ class EMSkeleton(StickEstimator):
                               articulated_rounds=int(self.articulated_rounds),
                               dissolve_points=int(self.dissolve_points), resplit=bool(self.resplit),
                               holdout=None if self.holdout is None else float(self.holdout),
+                              reattach=bool(self.reattach),
                               endpoint_init=self.endpoint_init, n_ends=int(self.n_ends))
         priors = Priors(tau_p=float(self.tau_p), alpha0=float(self.alpha0), beta0=float(self.beta0),
                         max_precision=float(self.max_precision))
@@ -510,7 +519,7 @@ def _skeleton(stages: list[Stage], selected: int, norm: tuple[np.ndarray, float]
             "objective": s.objective, "bic": s.bic, "n_sticks": int(s.labels.max()) + 1,
             "labels": s.labels.tolist(), "vertex_of": s.vertex_of.tolist(), "edges": [list(e) for e in s.edges],
             "merged": None if s.merged is None else list(s.merged), "n_sweeps": s.n_sweeps,
-            "dissolved": s.dissolved, "moved": s.moved, "heldout": s.heldout,
+            "dissolved": s.dissolved, "moved": s.moved, "heldout": s.heldout, "reattached": s.reattached,
             "ends_xy": (s.ends_xy * scale + centre).tolist(), "joints_xy": (s.joints_xy * scale + centre).tolist(),
         } for s in stages],
         "objective_stage": int(np.argmax([s.objective for s in stages])),

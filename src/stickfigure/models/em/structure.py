@@ -91,6 +91,7 @@ class EMSettings:
     dissolve_points: int = 3
     resplit: bool = True
     holdout: float | None = 0.15
+    reattach: bool = True
 
 
 def child_rng(rng: np.random.Generator) -> np.random.Generator:
@@ -762,6 +763,7 @@ class Stage:
     moved: int = 0  # points moved by refine.resplit_pairs
     heldout: dict | None = None  # the held-out check's errors (refine.heldout_dissolve)
     search_bic: float | None = None  # the search's best BIC, before the held-out check (compares starts)
+    reattached: list = field(default_factory=list)  # sub-tree moves kept (tree.reattach_subtrees)
 
 
 def _stage(st: StickState, obs: Observations, value: float, merged: tuple[int, int] | None, sweeps: int,
@@ -910,6 +912,19 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
             stages.append(_stage(cur, obs, val, None, n, ref))
             stages[-1].dissolved = gone
             stages[-1].heldout = hinfo
+            best[selection] = (getattr(stages[-1], selection), len(stages) - 1, cur.copy())
+    if settings.reattach:
+        # Sub-tree moves (tree.py): the greedy search never undoes a merge, and a contracted
+        # stick links its two neighbours whatever they are; a part hanging from the wrong stick
+        # is cut off and re-attached where the objective puts it.
+        from .tree import reattach_subtrees
+
+        _, at, cur = best[selection]
+        cur, val, n, moves = reattach_subtrees(cur.copy(), obs, priors, settings, rng, stages[at].objective,
+                                               lambda s, v: bic(s, obs, v) if selection == "bic" else v)
+        if moves:
+            stages.append(_stage(cur, obs, val, None, n, ref))
+            stages[-1].reattached = moves
             best[selection] = (getattr(stages[-1], selection), len(stages) - 1, cur.copy())
     for crit in ("objective", "bic"):
         stages[best[crit][1]].state = best[crit][2]

@@ -1,0 +1,189 @@
+"""Sub-tree moves on the learned forest: cut a joint and re-attach the cut-off part elsewhere.
+
+The greedy search of section 4.2 never undoes a merge. A merge that was the best
+at its stage can join two parts that are not neighbours in the body: on motion
+capture the thorax and pelvis sticks move nearly as one, so at the stage where a
+leg is joined either fits its hip; and a stick dissolved after the search
+(:func:`.refine.heldout_dissolve`) is contracted into a joint that links its two
+neighbours, whatever they are. The sub-tree move of Meeds et al. (section 4 of
+``000_f464b5e531ae41b5``) answers both in the MCMC: detach a sub-tree and re-attach it
+to another node. :func:`reattach_subtrees` is its greedy counterpart, scored by the
+same objective as the merges:
+
+1. For every endpoint ``e`` on a joint ``j``, detaching it cuts the forest in two:
+   the part ``A`` holding ``e``'s stick and the rest ``B``. Its current link costs
+   the pairwise least-squares joint residual ``r_0`` of ``e``'s stick and its
+   nearest partner on ``j`` (:func:`.structure.joint_least_squares`, mean squared
+   distance per stick and frame of the two sticks' predictions of a common point).
+2. The best other link between ``A`` and ``B`` has residual ``r_1`` (every stick
+   pair, one stick in each part). Only cuts with ``r_1 < ratio * r_0`` are tried
+   (the residual is a cheap bound; the trial costs EM runs).
+3. A trial detaches ``e`` (its own vertex again), scores every merge between the
+   two parts by the merge scoring of the search (:func:`.structure.score_candidates`,
+   the original link among them), and if the best is not the original link
+   performs it and re-runs EM. It is kept when ``criterion`` (the selection's BIC
+   or objective) improves; then the next round starts from the new forest.
+
+A move keeps the number of joints and sticks, so BIC and the objective compare
+like with like: the change is the fit of the re-placed joint alone.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from .model import Ghosts, Observations, Priors, StickState, chain_degree
+from .updates import update_endpoints
+
+__all__ = ["detach_endpoint", "cut_proposals", "reattach_subtrees"]
+
+
+def detach_endpoint(st: StickState, e: int, priors: Priors) -> StickState:
+    """A copy of ``st`` where endpoint ``e`` leaves its (shared) vertex for a new one of its own.
+
+    The new vertex starts at the endpoint's mean with the old vertex's precision;
+    the old vertex keeps its precision with one endpoint fewer.
+    """
+    j = int(st.vertex_of[e])
+    J, F, D = st.mu_v.shape
+    out = st.copy()
+    a = float(st.alpha[j] / st.beta[j])
+    n = float(np.sum(st.vertex_of == j))
+    out.vertex_of[e] = J
+    out.alpha[j] = priors.alpha0 + 0.5 * D * F * (n - 1.0)
+    out.beta[j] = out.alpha[j] / a
+    alpha_new = priors.alpha0 + 0.5 * D * F
+    out.alpha = np.append(out.alpha, alpha_new)
+    out.beta = np.append(out.beta, alpha_new / a)
+    out.mu_v = np.concatenate([out.mu_v, st.mu_e[e][None]])
+    out.tau_v = np.concatenate([out.tau_v, (a + st.tau_t * chain_degree(F))[None]])
+    if st.ghosts is not None:
+        g = st.ghosts
+        out.ghosts = Ghosts(np.append(g.n, 0.0), np.concatenate([g.sum, np.zeros((1, F, D))]),
+                            np.concatenate([g.sq, np.zeros((1, F))]), np.concatenate([g.var, np.zeros((1, F))]))
+    out._design = None
+    out._quat = None
+    update_endpoints(out)
+    return out
+
+
+def _stick_components(st: StickState, without: int | None = None) -> np.ndarray:
+    """Connected component of every stick (S,) in the stick/vertex forest, endpoint ``without``
+    left out of its vertex."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    E = st.ends_per_stick
+    keep = np.ones(st.vertex_of.size, bool)
+    if without is not None:
+        keep[without] = False
+    ends = np.flatnonzero(keep)
+    # Bipartite graph: sticks 0..S-1, vertices S..S+J-1.
+    g = coo_matrix((np.ones(ends.size), (ends // E, st.n_sticks + st.vertex_of[ends])),
+                   shape=(st.n_sticks + st.n_vertices,) * 2)
+    _, comp = connected_components(g, directed=False)
+    return comp[: st.n_sticks]
+
+
+def cut_proposals(st: StickState, obs: Observations, ratio: float) -> list[tuple[float, int]]:
+    """Endpoints worth detaching: ``(r_1 / r_0, e)`` for every cut whose best other link has a
+    least-squares joint residual below ``ratio`` times the current one, best ratio first."""
+    from .structure import joint_least_squares, pair_stats
+
+    E = st.ends_per_stick
+    cnt = st.vertex_counts()
+    seen = st.design(obs).n
+    stats = pair_stats(st)
+    # Centroid of each stick's points in its own frame: the ridge's anchor for a joint that
+    # is not there yet (the residual is a minimum over the joint's place, the anchor only
+    # fixes the directions the motion leaves open).
+    size = np.bincount(st.labels, minlength=st.n_sticks)
+    cen = np.zeros((st.n_sticks, 3))
+    np.add.at(cen, st.labels, st.local)
+    cen /= np.maximum(size, 1)[:, None]
+    pair: dict[tuple[int, int], float] = {}
+
+    def residual(a: int, b: int) -> float:
+        key = (min(a, b), max(a, b))
+        if key not in pair:
+            pair[key] = joint_least_squares(st, list(key), [cen[key[0]], cen[key[1]]], stats=stats, seen=seen)[1]
+        return pair[key]
+
+    whole = _stick_components(st)
+    out: list[tuple[float, int]] = []
+    for j in np.flatnonzero(cnt >= 2):
+        ends = np.flatnonzero(st.vertex_of == j)
+        # With two endpoints both detachments make the same cut: try one.
+        for e in ends[:1] if ends.size == 2 else ends:
+            s = int(e // E)
+            r0 = min(joint_least_squares(st, [s, int(x // E)], [st.ends[e], st.ends[x]], stats=stats, seen=seen)[1]
+                     for x in ends if x != e)
+            comp = _stick_components(st, e)
+            side = comp == comp[s]
+            rest = (whole == whole[s]) & ~side  # a forest: the cut always separates
+            r1 = min(residual(int(a), int(b)) for a in np.flatnonzero(side) for b in np.flatnonzero(rest))
+            if r1 < ratio * r0:
+                out.append((r1 / max(r0, 1e-300), int(e)))
+    out.sort()
+    return out
+
+
+def reattach_subtrees(st: StickState, obs: Observations, priors: Priors, settings, rng: np.random.Generator,
+                      value: float, criterion: Callable[[StickState, float], float], *, ratio: float = 0.8,
+                      max_trials: int | None = None) -> tuple[StickState, float, int, list[dict]]:
+    """Greedy sub-tree moves (module docstring) until no proposed cut improves ``criterion``.
+
+    Returns the state, its objective, the EM sweeps run, and one record per kept
+    move: ``{"sticks": (a, b), "was": (c, d)}``, the stick pairs of the new and the
+    old link (stick numbers of the state at that move).
+    """
+    from .structure import apply_merge, merge_candidates, run_em, score_candidates
+
+    E = st.ends_per_stick
+    best = criterion(st, value)
+    max_trials = 2 * st.n_sticks if max_trials is None else max_trials
+    tried: set[tuple] = set()
+    moves: list[dict] = []
+    sweeps = trials = 0
+    while trials < max_trials:
+        props = cut_proposals(st, obs, ratio)
+        key_of = {e: (tuple(np.flatnonzero(st.labels == e // E).tolist()),
+                      tuple(sorted(np.flatnonzero(st.labels == (x // E)).tolist()[0]
+                                   for x in np.flatnonzero(st.vertex_of == st.vertex_of[e]) if x != e)))
+                  for _, e in props}
+        props = [(r, e) for r, e in props if key_of[e] not in tried]
+        if not props:
+            break
+        _, e = props[0]
+        tried.add(key_of[e])
+        trials += 1
+        j = int(st.vertex_of[e])
+        partners = sorted({int(x // E) for x in np.flatnonzero(st.vertex_of == j) if x != e})
+        cut = detach_endpoint(st, e, priors)
+        comp = _stick_components(cut)
+        tree = _stick_components(st) == _stick_components(st)[e // E]
+        cands = []
+        for c in merge_candidates(cut, settings, cut.design(obs).n):
+            sticks = np.unique(c.ends // E)
+            on = comp[sticks] == comp[e // E]
+            if tree[sticks].all() and on.any() and not on.all():  # links the two parts of the cut
+                cands.append(c)
+        if not cands:
+            continue
+        blocks = score_candidates(cut, obs, priors, settings, cands, rng)
+        b = int(np.argmax([c.score for c in cands]))
+        c = cands[b]
+        sticks = sorted({int(x) for x in c.ends // E})
+        if e in c.ends and set(sticks) - {int(e // E)} <= set(partners):
+            continue  # the original link is the best: nothing to move
+        trial = apply_merge(cut, c, priors, settings, blocks[b])
+        trial, val, n = run_em(trial, obs, priors, settings, settings.n_iter, rng)
+        sweeps += n
+        score = criterion(trial, val)
+        if score > best:
+            moves.append({"sticks": [int(x) for x in sticks], "was": [int(e // E), partners[0]]})
+            st, value, best = trial, val, score
+            tried.clear()
+    return st, value, sweeps, moves
