@@ -630,8 +630,8 @@ def test_cmu_isometric_view_follows_the_segments(data_dir):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="known limitation (docs/em.md section 11): on this view the left leg "
-                                       "is joined to the thorax, the right knee to the left leg, and RELB "
+@pytest.mark.xfail(strict=True, reason="known limitation (docs/em.md section 11): on this view the right knee "
+                                       "and shin hang from the left leg (RTHI is on the pelvis stick), and RELB "
                                        "shares a stick with RFIN")
 def test_cmu_isometric_view_gives_a_body_tree(data_dir):
     # What a body tree means: every stick holds markers of one connected piece of the body

@@ -87,6 +87,15 @@ def _stick_components(st: StickState, without: int | None = None) -> np.ndarray:
     return comp[: st.n_sticks]
 
 
+def _cut_key(st: StickState, e: int) -> tuple:
+    """A cut by the point sets it separates: endpoint ``e``'s stick and its partners on its vertex
+    (stick numbers change when a move re-runs EM; point sets name the same cut)."""
+    E = st.ends_per_stick
+    mates = np.flatnonzero(st.vertex_of == st.vertex_of[e])
+    return (tuple(np.flatnonzero(st.labels == e // E).tolist()),
+            tuple(sorted(tuple(np.flatnonzero(st.labels == x // E).tolist()) for x in mates if x != e)))
+
+
 def cut_proposals(st: StickState, obs: Observations, ratio: float) -> list[tuple[float, int]]:
     """Endpoints worth detaching: ``(r_1 / r_0, e)`` for every cut whose best other link has a
     least-squares joint residual below ``ratio`` times the current one, best ratio first."""
@@ -136,8 +145,9 @@ def reattach_subtrees(st: StickState, obs: Observations, priors: Priors, setting
     """Greedy sub-tree moves (module docstring) until no proposed cut improves ``criterion``.
 
     Returns the state, its objective, the EM sweeps run, and one record per kept
-    move: ``{"sticks": (a, b), "was": (c, d)}``, the stick pairs of the new and the
-    old link (stick numbers of the state at that move).
+    move: ``{"sticks": [a, b], "was": [c, d]}``, the stick pairs of the new and the
+    old link (stick numbers of the state at that move). A cut is tried once per
+    kept move (``max_trials``, default twice the sticks, bounds the trials).
     """
     from .structure import apply_merge, merge_candidates, run_em, score_candidates
 
@@ -148,16 +158,11 @@ def reattach_subtrees(st: StickState, obs: Observations, priors: Priors, setting
     moves: list[dict] = []
     sweeps = trials = 0
     while trials < max_trials:
-        props = cut_proposals(st, obs, ratio)
-        key_of = {e: (tuple(np.flatnonzero(st.labels == e // E).tolist()),
-                      tuple(sorted(np.flatnonzero(st.labels == (x // E)).tolist()[0]
-                                   for x in np.flatnonzero(st.vertex_of == st.vertex_of[e]) if x != e)))
-                  for _, e in props}
-        props = [(r, e) for r, e in props if key_of[e] not in tried]
+        props = [(r, e) for r, e in cut_proposals(st, obs, ratio) if _cut_key(st, e) not in tried]
         if not props:
             break
         _, e = props[0]
-        tried.add(key_of[e])
+        tried.add(_cut_key(st, e))
         trials += 1
         j = int(st.vertex_of[e])
         partners = sorted({int(x // E) for x in np.flatnonzero(st.vertex_of == j) if x != e})
@@ -176,8 +181,8 @@ def reattach_subtrees(st: StickState, obs: Observations, priors: Priors, setting
         b = int(np.argmax([c.score for c in cands]))
         c = cands[b]
         sticks = sorted({int(x) for x in c.ends // E})
-        if e in c.ends and set(sticks) - {int(e // E)} <= set(partners):
-            continue  # the original link is the best: nothing to move
+        if j in (c.j1, c.j2) and {x for x in sticks if comp[x] == comp[e // E]} == {int(e // E)}:
+            continue  # the best is the old link (e's stick back on j): nothing to move
         trial = apply_merge(cut, c, priors, settings, blocks[b])
         trial, val, n = run_em(trial, obs, priors, settings, settings.n_iter, rng)
         sweeps += n
