@@ -5,12 +5,12 @@ at its stage can join two parts that are not neighbours in the body: on motion
 capture the thorax and pelvis sticks move nearly as one, so at the stage where a
 leg is joined either fits its hip; and a stick dissolved after the search
 (:func:`.refine.heldout_dissolve`) is contracted into a joint that links its two
-neighbours, whatever they are. The sub-tree move of Meeds et al. (section 4 of
-``000_f464b5e531ae41b5``) answers both in the MCMC: detach a sub-tree and re-attach it
-to another node. :func:`reattach_subtrees` is its greedy counterpart, scored by the
+neighbours, whatever they are. The sub-tree move of Meeds et al. (section 3.1.3 of
+``000_f464b5e531ae41b5``) answers both in their MCMC: detach a sub-tree from its parent
+and re-attach it to another node outside it. :func:`reattach_subtrees` is its greedy counterpart, scored by the
 same objective as the merges:
 
-1. For every endpoint ``e`` on a joint ``j``, detaching it cuts the forest in two:
+1. For every endpoint ``e`` on a joint ``j``, detaching it cuts its tree in two:
    the part ``A`` holding ``e``'s stick and the rest ``B``. Its current link costs
    the pairwise least-squares joint residual ``r_0`` of ``e``'s stick and its
    nearest partner on ``j`` (:func:`.structure.joint_least_squares`, mean squared
