@@ -74,10 +74,35 @@ def test_score_skeleton_with_truth_and_joint_error():
                        joints=tr.joints_true + 0.5, n_dims=2)
     sc = m.score_skeleton(skel, tr)
     assert sc["ari"] == 1.0 and sc["misclassification"] == 0.0 and sc["exact"]
-    assert sc["edge_f1"] == 1.0
+    assert sc["edge_f1"] == 1.0 and sc["coherent_sticks"] == 1.0 and sc["anatomical_edges"] == 1.0
     assert sc["joint_error"] == pytest.approx(np.sqrt(0.5), rel=1e-9)
     bare = m.score_skeleton(skel, sf.Trajectories(tr.xy))
     assert set(bare) == {"n_sticks", "n_edges"}
+
+
+def test_tree_consistency_on_a_coarse_and_a_wrong_skeleton():
+    # True tree, a body in miniature: 0 pelvis - 1 thigh - 2 shin, 0 - 3 chest - 4 head; two points each.
+    true = np.repeat(np.arange(5), 2)
+    body = [(0, 1), (1, 2), (0, 3), (3, 4)]
+    # Coarse but right: the leg (thigh and shin) one stick, hung from the pelvis; chest with head.
+    coarse = np.array([0, 0, 1, 1, 1, 1, 2, 2, 2, 2])
+    sc = m.tree_consistency(coarse, [(0, 1), (0, 2)], true, body)
+    assert sc == {"coherent_sticks": 1.0, "anatomical_edges": 1.0}
+    assert m.edge_scores(coarse, [(0, 1), (0, 2)], true, body)["edge_f1"] < 1.0  # the majority mapping is not
+    # The leg hung from the head stick: one of two edges wrong.
+    sc = m.tree_consistency(coarse, [(1, 2), (0, 2)], true, body)
+    assert sc["anatomical_edges"] == 0.5 and sc["coherent_sticks"] == 1.0
+    # A stick holding a shin point and a head point is not a piece of the body; points of no
+    # part (-1) are left out, and a stick holding only those counts for nothing.
+    mixed = np.array([0, 0, 1, 1, 1, 1, 2, 2, 2, 1])
+    assert m.tree_consistency(mixed, [], true, body)["coherent_sticks"] == pytest.approx(2 / 3)
+    assert np.isnan(m.tree_consistency(mixed, [], true, body)["anatomical_edges"])
+    t2 = true.copy()
+    t2[[4, 5]] = -1
+    sc = m.tree_consistency(np.array([0, 0, 1, 1, 3, 3, 2, 2, 2, 2]), [(1, 3)], t2, body)
+    assert sc["coherent_sticks"] == 1.0 and np.isnan(sc["anatomical_edges"])
+    with pytest.raises(ValueError, match="edges_pred"):
+        m.tree_consistency(coarse, [(0, 7)], true, body)
 
 
 def test_score_errors():

@@ -8,7 +8,10 @@ Structure
     :func:`stick_to_part` maps each learned stick to the true part holding most
     of its points; :func:`edge_scores` maps the learned edges through it and
     compares them, undirected, with ``edges_true`` (precision, recall, F1 and
-    the exact-structure flag).
+    the exact-structure flag). :func:`tree_consistency` does without the
+    mapping, for skeletons coarser than the truth (a whole leg as one stick):
+    the share of sticks whose true parts are one connected piece of the true
+    tree, and of edges whose two sticks' parts together are.
 Imputation
     :func:`imputation_rmse` over a mask of hidden entries.
 Joints
@@ -35,6 +38,7 @@ __all__ = [
     "misclassification_rate",
     "stick_to_part",
     "edge_scores",
+    "tree_consistency",
     "imputation_rmse",
     "joint_position_error",
     "score_skeleton",
@@ -168,6 +172,61 @@ def edge_scores(
             "mapping": mapping.tolist(), "edges_mapped": sorted(pred)}
 
 
+def tree_consistency(labels_pred: Any, edges_pred: Any, labels_true: Any, edges_true: Any,
+                     n_sticks: int | None = None) -> dict[str, float]:
+    """Does a learned skeleton join its sticks as the true tree does, at its own coarseness?
+
+    A stick is *coherent* when the true parts of its points form one connected
+    piece of the true tree (``edges_true``): a stick holding a whole leg is, one
+    holding an elbow and a knee marker is not. An edge is *anatomical* when the
+    parts of its two sticks together form one connected piece: a leg stick joined
+    to the pelvis stick is, a leg joined to the head is not. Unlike
+    :func:`edge_scores` nothing is mapped to a majority part, so a coarse but
+    correct skeleton scores well.
+
+    Parameters
+    ----------
+    labels_pred : array_like of int, shape (P,)
+    edges_pred : sequence of (int, int)
+        Stick pairs.
+    labels_true : array_like of int, shape (P,)
+        -1 for points of no part (left out).
+    edges_true : sequence of (int, int)
+        Part pairs of the true tree.
+    n_sticks : int, optional
+
+    Returns
+    -------
+    dict
+        ``coherent_sticks`` (share of the sticks holding a point of a known part)
+        and ``anatomical_edges`` (share of the learned edges between such
+        sticks; NaN when there is none).
+    """
+    import networkx as nx
+
+    t = np.asarray(labels_true)
+    t = check_labels(t, t.shape[0] if t.ndim == 1 else -1, "labels_true")
+    p = check_labels(labels_pred, t.shape[0], "labels_pred")
+    S = int(p.max(initial=-1)) + 1 if n_sticks is None else int(n_sticks)
+    tree = nx.Graph()
+    tree.add_nodes_from(range(int(t.max(initial=-1)) + 1))
+    tree.add_edges_from(_undirected(edges_true))
+    parts = [set(t[(p == s) & (t >= 0)].tolist()) for s in range(S)]
+
+    def connected(nodes: set[int]) -> bool:
+        return nx.is_connected(tree.subgraph(nodes))
+
+    known = [s for s in range(S) if parts[s]]
+    coherent = float(np.mean([connected(parts[s]) for s in known])) if known else float("nan")
+    edges = []
+    for a, b in edges_pred:
+        if not (0 <= int(a) < S and 0 <= int(b) < S):
+            raise ValueError(f"edges_pred refers to stick {max(int(a), int(b))}, but there are {S} sticks")
+        if parts[int(a)] and parts[int(b)]:
+            edges.append(connected(parts[int(a)] | parts[int(b)]))
+    return {"coherent_sticks": coherent, "anatomical_edges": float(np.mean(edges)) if edges else float("nan")}
+
+
 def imputation_rmse(predicted: Any, truth: Any, mask: Any, *, per: str = "coordinate") -> float:
     """Root-mean-square error of predictions on the hidden entries.
 
@@ -260,7 +319,8 @@ def score_skeleton(skeleton: Skeleton, traj: Trajectories) -> dict[str, Any]:
     dict
         ``n_sticks`` always; with labels: ``n_parts_true``, ``ari``,
         ``misclassification``; with edges too: ``edge_precision``, ``edge_recall``,
-        ``edge_f1``, ``exact``; with true joints and learned joints: ``joint_error``.
+        ``edge_f1``, ``exact``, ``coherent_sticks``, ``anatomical_edges``; with true
+        joints and learned joints: ``joint_error``.
     """
     if not isinstance(skeleton, Skeleton):
         raise TypeError(f"skeleton must be a Skeleton, got {type(skeleton).__name__}")
@@ -277,6 +337,8 @@ def score_skeleton(skeleton: Skeleton, traj: Trajectories) -> dict[str, Any]:
     if traj.edges_true is not None:
         sc = edge_scores(skeleton.labels, skeleton.edges, traj.labels_true, traj.edges_true, skeleton.n_sticks)
         out.update({k: sc[k] for k in ("edge_precision", "edge_recall", "edge_f1", "exact")})
+        out.update(tree_consistency(skeleton.labels, skeleton.edges, traj.labels_true, traj.edges_true,
+                                    skeleton.n_sticks))
         if skeleton.joints is not None and traj.joints_true is not None:
             out["joint_error"] = joint_position_error(skeleton, traj)
     return out
