@@ -192,6 +192,9 @@ def test_plots(tmp_path, chain, fitted):
 
     fig = emplot.plot_stages(fitted.skeleton_, chain)
     assert len(fig.axes) >= 3
+    titles = [a.get_title() for a in fig.axes if a.get_title()]
+    assert titles[0].startswith("stage 0: EM") and titles[1].startswith("stage 1: merge")
+    assert sum("(selected)" in t for t in titles) == 1
     ax = emplot.plot_objective(fitted.skeleton_)
     assert ax.get_xlabel() == "merge stage"
     out = emplot.figure(fitted.skeleton_, chain, tmp_path / "em.png")
@@ -455,6 +458,10 @@ def test_jointed_pair_with_swapped_points_is_resplit(chain):
     assert max(s["moved"] for s in sk.info["stages"]) >= 3 and sk.info["selected_stage"] == len(sk.info["stages"]) - 1
     # The re-split leaves the tree one link off; the sub-tree move (tree.py) puts it right.
     assert _edges(sk, chain) == _true_edges(chain)
+    from stickfigure.plot.em import stage_kind
+
+    kinds = [stage_kind(s, k) for k, s in enumerate(sk.info["stages"])]
+    assert kinds[0] == "EM" and kinds[-2:] == ["re-split", "sub-tree moves"]
 
 
 # ----------------------------------------------------------------- missing data

@@ -19,7 +19,7 @@ import numpy as np
 from ..skeleton import Skeleton
 from ..trajectories import Trajectories
 
-__all__ = ["plot_stage", "plot_stages", "plot_objective", "figure"]
+__all__ = ["stage_kind", "plot_stage", "plot_stages", "plot_objective", "figure"]
 
 
 def _check(skeleton: Skeleton) -> list[dict]:
@@ -75,6 +75,25 @@ def _stick_lines(stage: dict, pts: np.ndarray | None) -> tuple[list[np.ndarray],
             segs.append(np.stack([c + proj.min() * Vt[0], c + proj.max() * Vt[0]]))
             owner.append(s)
     return segs, np.asarray(owner, dtype=int), joints[count >= 2]
+
+
+def stage_kind(stage: dict, index: int) -> str:
+    """What made a stage (for titles): the first EM run, a merge, or one of the moves after the
+    search (re-split pairs, dissolved sticks, the held-out check, sub-tree moves; docs/em.md
+    section 6)."""
+    if stage.get("merged") is not None:
+        return "merge"
+    if stage.get("reattached"):
+        return "sub-tree moves"
+    if stage.get("heldout"):
+        return "held-out check"
+    if stage.get("dissolved") and stage.get("moved"):
+        return "re-split, dissolved"
+    if stage.get("dissolved"):
+        return "dissolved"
+    if stage.get("moved"):
+        return "re-split"
+    return "EM" if index == 0 else "after the search"
 
 
 def plot_stage(skeleton: Skeleton, stage: int, traj: Trajectories | np.ndarray | None = None, ax: Any = None, *,
@@ -137,7 +156,8 @@ def plot_stage(skeleton: Skeleton, stage: int, traj: Trajectories | np.ndarray |
     ax.set_yticks([])
     selected = int(skeleton.info.get("selected_stage", -1)) == (stage % len(stages))
     if title:
-        ax.set_title(f"stage {stage % len(stages)}" + (" (selected)" if selected else ""), fontsize=9)
+        k = stage % len(stages)
+        ax.set_title(f"stage {k}: {stage_kind(st, k)}" + (" (selected)" if selected else ""), fontsize=9)
     if selected:
         for spine in ax.spines.values():
             spine.set_linewidth(2.5)
