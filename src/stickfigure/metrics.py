@@ -198,9 +198,9 @@ def tree_consistency(labels_pred: Any, edges_pred: Any, labels_true: Any, edges_
     Returns
     -------
     dict
-        ``coherent_sticks`` (share of the sticks holding a point of a known part)
-        and ``anatomical_edges`` (share of the learned edges between such
-        sticks; NaN when there is none).
+        ``coherent_sticks``: the share of coherent sticks among those holding a
+        point of a known part; ``anatomical_edges``: the share of anatomical
+        edges among the learned edges between such sticks (NaN when there is none).
     """
     import networkx as nx
 
