@@ -88,8 +88,8 @@ def _stick_components(st: StickState, without: int | None = None) -> np.ndarray:
 
 
 def _cut_key(st: StickState, e: int) -> tuple:
-    """A cut by the point sets it separates: endpoint ``e``'s stick and its partners on its vertex
-    (stick numbers change when a move re-runs EM; point sets name the same cut)."""
+    """A cut named by point sets: those of endpoint ``e``'s stick and of its partners on its
+    vertex (a move's EM run may move points between sticks; then the cut is a new one)."""
     E = st.ends_per_stick
     mates = np.flatnonzero(st.vertex_of == st.vertex_of[e])
     return (tuple(np.flatnonzero(st.labels == e // E).tolist()),
