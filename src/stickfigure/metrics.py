@@ -120,6 +120,21 @@ def _undirected(edges: Any) -> set[tuple[int, int]]:
     return {(min(int(a), int(b)), max(int(a), int(b))) for a, b in edges if int(a) != int(b)}
 
 
+def _structure_inputs(labels_pred: Any, edges_pred: Any, labels_true: Any, n_sticks: int | None
+                      ) -> tuple[np.ndarray, np.ndarray, int, list[tuple[int, int]]]:
+    """Checked true labels, learned labels, stick count and learned edges (a list: any iterable
+    is read once); every learned edge must name sticks below that count."""
+    t = np.asarray(labels_true)
+    t = check_labels(t, t.shape[0] if t.ndim == 1 else -1, "labels_true")
+    p = check_labels(labels_pred, t.shape[0], "labels_pred")
+    S = int(p.max(initial=-1)) + 1 if n_sticks is None else int(n_sticks)
+    edges = [(int(a), int(b)) for a, b in edges_pred]
+    for a, b in edges:
+        if not (0 <= a < S and 0 <= b < S):
+            raise ValueError(f"edges_pred refers to stick {max(a, b)}, but there are {S} sticks")
+    return t, p, S, edges
+
+
 def edge_scores(
     labels_pred: Any,
     edges_pred: Any,
@@ -144,14 +159,8 @@ def edge_scores(
         F1 is 0 when either is 0 or undefined while the other is not, and 1
         when both edge sets are empty.
     """
-    t = np.asarray(labels_true)
-    t = check_labels(t, t.shape[0] if t.ndim == 1 else -1, "labels_true")
-    p = check_labels(labels_pred, t.shape[0], "labels_pred")
-    S = int(p.max(initial=-1)) + 1 if n_sticks is None else int(n_sticks)
+    t, p, S, edges_pred = _structure_inputs(labels_pred, edges_pred, labels_true, n_sticks)
     mapping = stick_to_part(p, t, S)
-    for a, b in edges_pred:
-        if not (0 <= int(a) < S and 0 <= int(b) < S):
-            raise ValueError(f"edges_pred refers to stick {max(int(a), int(b))}, but there are {S} sticks")
     mapped = {(mapping[a], mapping[b]) for a, b in edges_pred if mapping[a] >= 0 and mapping[b] >= 0}
     pred = _undirected(mapped)
     true = _undirected(edges_true)
@@ -204,10 +213,7 @@ def tree_consistency(labels_pred: Any, edges_pred: Any, labels_true: Any, edges_
     """
     import networkx as nx
 
-    t = np.asarray(labels_true)
-    t = check_labels(t, t.shape[0] if t.ndim == 1 else -1, "labels_true")
-    p = check_labels(labels_pred, t.shape[0], "labels_pred")
-    S = int(p.max(initial=-1)) + 1 if n_sticks is None else int(n_sticks)
+    t, p, S, edges_pred = _structure_inputs(labels_pred, edges_pred, labels_true, n_sticks)
     tree = nx.Graph()
     tree.add_nodes_from(range(int(t.max(initial=-1)) + 1))
     tree.add_edges_from(_undirected(edges_true))
@@ -218,13 +224,9 @@ def tree_consistency(labels_pred: Any, edges_pred: Any, labels_true: Any, edges_
 
     known = [s for s in range(S) if parts[s]]
     coherent = float(np.mean([connected(parts[s]) for s in known])) if known else float("nan")
-    edges = []
-    for a, b in edges_pred:
-        if not (0 <= int(a) < S and 0 <= int(b) < S):
-            raise ValueError(f"edges_pred refers to stick {max(int(a), int(b))}, but there are {S} sticks")
-        if parts[int(a)] and parts[int(b)]:
-            edges.append(connected(parts[int(a)] | parts[int(b)]))
-    return {"coherent_sticks": coherent, "anatomical_edges": float(np.mean(edges)) if edges else float("nan")}
+    anatomical = [connected(parts[a] | parts[b]) for a, b in edges_pred if parts[a] and parts[b]]
+    return {"coherent_sticks": coherent,
+            "anatomical_edges": float(np.mean(anatomical)) if anatomical else float("nan")}
 
 
 def imputation_rmse(predicted: Any, truth: Any, mask: Any, *, per: str = "coordinate") -> float:

@@ -137,8 +137,11 @@ def run_em(st: StickState, obs: Observations, priors: Priors, settings: EMSettin
 
 
 # ----------------------------------------------------------------------- graph helpers
-def components(st: StickState) -> tuple[np.ndarray, np.ndarray]:
+def components(st: StickState, without: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Connected components of the stick/vertex forest.
+
+    ``without``: an endpoint left out of its vertex (the forest as it would be with that
+    endpoint detached; :mod:`.tree` uses it to find the two parts of a cut).
 
     Returns
     -------
@@ -155,8 +158,11 @@ def components(st: StickState) -> tuple[np.ndarray, np.ndarray]:
 
     first = -np.ones(J, np.int64)
     E = st.ends_per_stick
-    for i, j in enumerate(st.vertex_of):
-        s = i // E
+    keep = np.ones(st.vertex_of.size, bool)
+    if without is not None:
+        keep[without] = False
+    for i in np.flatnonzero(keep):
+        j, s = st.vertex_of[i], i // E
         if first[j] < 0:
             first[j] = s
         else:
@@ -165,8 +171,12 @@ def components(st: StickState) -> tuple[np.ndarray, np.ndarray]:
                 parent[ra] = rb
     comp = np.array([find(s) for s in range(S)])
     _, comp = np.unique(comp, return_inverse=True)
-    cv = comp[np.array([np.flatnonzero(st.vertex_of == j)[0] // E for j in range(J)])]
-    return comp, cv
+    # A vertex belongs to the component of its (kept) endpoints; one left with only the
+    # detached endpoint, to that endpoint's stick.
+    owner = np.where(first >= 0, first, -1)
+    for j in np.flatnonzero(owner < 0):
+        owner[j] = np.flatnonzero(st.vertex_of == j)[0] // E
+    return comp, comp[owner]
 
 
 def stick_edges(st: StickState, obs: Observations | None = None) -> tuple[list[tuple[int, int]], list[int]]:

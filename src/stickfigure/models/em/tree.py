@@ -69,24 +69,6 @@ def detach_endpoint(st: StickState, e: int, priors: Priors) -> StickState:
     return out
 
 
-def _stick_components(st: StickState, without: int | None = None) -> np.ndarray:
-    """Connected component of every stick (S,) in the stick/vertex forest, endpoint ``without``
-    left out of its vertex."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    E = st.ends_per_stick
-    keep = np.ones(st.vertex_of.size, bool)
-    if without is not None:
-        keep[without] = False
-    ends = np.flatnonzero(keep)
-    # Bipartite graph: sticks 0..S-1, vertices S..S+J-1.
-    g = coo_matrix((np.ones(ends.size), (ends // E, st.n_sticks + st.vertex_of[ends])),
-                   shape=(st.n_sticks + st.n_vertices,) * 2)
-    _, comp = connected_components(g, directed=False)
-    return comp[: st.n_sticks]
-
-
 def _cut_key(st: StickState, e: int) -> tuple:
     """A cut named by point sets: those of endpoint ``e``'s stick and of its partners on its
     vertex (a move's EM run may move points between sticks; then the cut is a new one)."""
@@ -99,7 +81,7 @@ def _cut_key(st: StickState, e: int) -> tuple:
 def cut_proposals(st: StickState, obs: Observations, ratio: float) -> list[tuple[float, int]]:
     """Endpoints worth detaching: ``(r_1 / r_0, e)`` for every cut whose best other link has a
     least-squares joint residual below ``ratio`` times the current one, best ratio first."""
-    from .structure import joint_least_squares, pair_stats
+    from .structure import components, joint_least_squares, pair_stats
 
     E = st.ends_per_stick
     cnt = st.vertex_counts()
@@ -109,9 +91,7 @@ def cut_proposals(st: StickState, obs: Observations, ratio: float) -> list[tuple
     # is not there yet (the residual is a minimum over the joint's place, the anchor only
     # fixes the directions the motion leaves open).
     size = np.bincount(st.labels, minlength=st.n_sticks)
-    cen = np.zeros((st.n_sticks, 3))
-    np.add.at(cen, st.labels, st.local)
-    cen /= np.maximum(size, 1)[:, None]
+    cen = st.design(obs).stick_sum(st.local) / np.maximum(size, 1)[:, None]
     pair: dict[tuple[int, int], float] = {}
 
     def residual(a: int, b: int) -> float:
@@ -120,7 +100,7 @@ def cut_proposals(st: StickState, obs: Observations, ratio: float) -> list[tuple
             pair[key] = joint_least_squares(st, list(key), [cen[key[0]], cen[key[1]]], stats=stats, seen=seen)[1]
         return pair[key]
 
-    whole = _stick_components(st)
+    whole = components(st)[0]
     out: list[tuple[float, int]] = []
     for j in np.flatnonzero(cnt >= 2):
         ends = np.flatnonzero(st.vertex_of == j)
@@ -129,7 +109,7 @@ def cut_proposals(st: StickState, obs: Observations, ratio: float) -> list[tuple
             s = int(e // E)
             r0 = min(joint_least_squares(st, [s, int(x // E)], [st.ends[e], st.ends[x]], stats=stats, seen=seen)[1]
                      for x in ends if x != e)
-            comp = _stick_components(st, e)
+            comp = components(st, e)[0]
             side = comp == comp[s]
             rest = (whole == whole[s]) & ~side  # a forest: the cut always separates
             r1 = min(residual(int(a), int(b)) for a in np.flatnonzero(side) for b in np.flatnonzero(rest))
@@ -149,7 +129,7 @@ def reattach_subtrees(st: StickState, obs: Observations, priors: Priors, setting
     old link (stick numbers of the state at that move). A cut is tried once per
     kept move (``max_trials``, default twice the sticks, bounds the trials).
     """
-    from .structure import apply_merge, merge_candidates, run_em, score_candidates
+    from .structure import apply_merge, components, merge_candidates, run_em, score_candidates
 
     E = st.ends_per_stick
     best = criterion(st, value)
@@ -167,8 +147,9 @@ def reattach_subtrees(st: StickState, obs: Observations, priors: Priors, setting
         j = int(st.vertex_of[e])
         partners = sorted({int(x // E) for x in np.flatnonzero(st.vertex_of == j) if x != e})
         cut = detach_endpoint(st, e, priors)
-        comp = _stick_components(cut)
-        tree = _stick_components(st) == _stick_components(st)[e // E]
+        comp = components(cut)[0]
+        whole = components(st)[0]
+        tree = whole == whole[e // E]
         cands = []
         for c in merge_candidates(cut, settings, cut.design(obs).n):
             sticks = np.unique(c.ends // E)
