@@ -1,5 +1,7 @@
 """Trajectory segmentation: known answers on synthetic figures, model selection, errors."""
 
+import warnings
+
 import numpy as np
 import pytest
 from sklearn.metrics import adjusted_rand_score
@@ -123,6 +125,18 @@ def test_affinity_propagation_segments_with_missing_data():
     occ, _ = sf.synthetic.occlude(tr, seed=0)
     labels = seg.affinity_propagation_segments(occ.xy, random_state=0)
     assert adjusted_rand_score(tr.labels_true, labels) > 0.8
+
+
+def test_affinity_propagation_segments_of_identical_trajectories_is_one_segment_without_warning():
+    # Every similarity equal: scikit-learn warns and picks an arbitrary exemplar; the answer
+    # (one rigid body) is right, so no warning reaches the user.
+    xy, _ = rigid_bodies(n_bodies=1, seed=7)
+    same = np.repeat(xy[:1], 10, axis=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        labels = seg.affinity_propagation_segments(same, random_state=0)
+        skel = sf.fit(same, method="em", random_state=0)
+    assert np.all(labels == labels[0]) and skel.n_sticks == 1
 
 
 def test_affinity_propagation_segments_errors():

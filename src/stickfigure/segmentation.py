@@ -530,6 +530,9 @@ def _affinity_propagation(S: np.ndarray, preference: float, seed: int) -> np.nda
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
+        # Identical trajectories (all similarities equal): scikit-learn returns one cluster or
+        # one per point, which the callers handle; its warning would only puzzle a user.
+        warnings.filterwarnings("ignore", message="All samples have mutually equal similarities")
         ap = AffinityPropagation(affinity="precomputed", preference=preference, damping=0.9,
                                  max_iter=500, convergence_iter=40, random_state=seed).fit(S)
     labels = np.asarray(ap.labels_, dtype=np.int64)
