@@ -92,10 +92,13 @@ def test_tree_consistency_on_a_coarse_and_a_wrong_skeleton():
     # The leg hung from the head stick: one of two edges wrong.
     sc = m.tree_consistency(coarse, [(1, 2), (0, 2)], true, body)
     assert sc["anatomical_edges"] == 0.5 and sc["coherent_sticks"] == 1.0
+    sc = m.tree_consistency(coarse, [(1, 2), (0, 2)], true, body, detail=True)
+    assert sc["non_anatomical"] == [(1, 2)] and sc["incoherent"] == []
     # A stick holding a shin point and a head point is not a piece of the body; points of no
     # part (-1) are left out, and a stick holding only those counts for nothing.
     mixed = np.array([0, 0, 1, 1, 1, 1, 2, 2, 2, 1])
     assert m.tree_consistency(mixed, [], true, body)["coherent_sticks"] == pytest.approx(2 / 3)
+    assert m.tree_consistency(mixed, [], true, body, detail=True)["incoherent"] == [1]
     assert np.isnan(m.tree_consistency(mixed, [], true, body)["anatomical_edges"])
     t2 = true.copy()
     t2[[4, 5]] = -1

@@ -182,7 +182,7 @@ def edge_scores(
 
 
 def tree_consistency(labels_pred: Any, edges_pred: Any, labels_true: Any, edges_true: Any,
-                     n_sticks: int | None = None) -> dict[str, float]:
+                     n_sticks: int | None = None, *, detail: bool = False) -> dict[str, Any]:
     """Does a learned skeleton join its sticks as the true tree does, at its own coarseness?
 
     A stick is *coherent* when the true parts of its points form one connected
@@ -203,6 +203,9 @@ def tree_consistency(labels_pred: Any, edges_pred: Any, labels_true: Any, edges_
     edges_true : sequence of (int, int)
         Part pairs of the true tree.
     n_sticks : int, optional
+    detail : bool
+        Also name the failures: ``incoherent`` (the sticks that are not coherent)
+        and ``non_anatomical`` (the edges that are not anatomical).
 
     Returns
     -------
@@ -223,10 +226,15 @@ def tree_consistency(labels_pred: Any, edges_pred: Any, labels_true: Any, edges_
         return nx.is_connected(tree.subgraph(nodes))
 
     known = [s for s in range(S) if parts[s]]
-    coherent = float(np.mean([connected(parts[s]) for s in known])) if known else float("nan")
-    anatomical = [connected(parts[a] | parts[b]) for a, b in edges_pred if parts[a] and parts[b]]
-    return {"coherent_sticks": coherent,
-            "anatomical_edges": float(np.mean(anatomical)) if anatomical else float("nan")}
+    coherent = [connected(parts[s]) for s in known]
+    judged = [(a, b) for a, b in edges_pred if parts[a] and parts[b]]
+    anatomical = [connected(parts[a] | parts[b]) for a, b in judged]
+    out: dict[str, Any] = {"coherent_sticks": float(np.mean(coherent)) if known else float("nan"),
+                           "anatomical_edges": float(np.mean(anatomical)) if anatomical else float("nan")}
+    if detail:
+        out["incoherent"] = [s for s, ok in zip(known, coherent) if not ok]
+        out["non_anatomical"] = [(int(a), int(b)) for (a, b), ok in zip(judged, anatomical) if not ok]
+    return out
 
 
 def imputation_rmse(predicted: Any, truth: Any, mask: Any, *, per: str = "coordinate") -> float:
