@@ -368,6 +368,28 @@ def test_noise_variance_is_floored_by_the_precision_bound(chain):
     np.testing.assert_allclose(loose, tight * quartile / 1e-2)
 
 
+def test_misfit_ratios_of_true_sticks_stay_near_one_with_half_the_data_missing():
+    # 4-point sticks, half the entries hidden: in many frames a stick shows fewer than 3 points
+    # and its rotation is interpolated, not fitted. Counting 3 + D parameters in every frame it
+    # is seen in (as the ratio once did) left negative degrees of freedom (ratio 0) or a few
+    # (ratio 17-36) for these rigid sticks; counted as the noise variance counts them (fit_dof)
+    # they fit at about 1.
+    from stickfigure.models.em import fit_stages
+    from stickfigure.models.em.model import Priors, normalise
+    from stickfigure.models.em.refine import fit_dof, misfit_ratios
+    from stickfigure.models.em.structure import EMSettings
+
+    tr = sf.synthetic.random_figure(n_sticks=4, frames=120, noise=0.01, seed=3, points_per_stick=4)
+    occ, _ = sf.synthetic.occlude(tr, seed=3, bar_fraction=0.3, random_fraction=0.3)
+    stages, sel, _, _ = fit_stages(occ, EMSettings(n_iter=60), Priors(), np.random.default_rng(0),
+                                   labels=tr.labels_true)
+    st = stages[sel].state
+    obs, _, _ = normalise(occ.xy)
+    assert np.all(fit_dof(st, obs) > 0)
+    ratio = misfit_ratios(st, obs, Priors())
+    assert np.all((ratio > 0.5) & (ratio < 1.5))
+
+
 def test_heldout_error_predicts_hidden_entries_only(chain):
     # The held-out error re-fits the motions from the visible entries (as imputation does):
     # nothing hidden, nothing to score; with 15 % hidden, the true structure predicts them to

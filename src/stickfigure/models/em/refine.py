@@ -671,17 +671,16 @@ def misfit_ratios(st: StickState, obs: Observations, priors: Priors) -> np.ndarr
     """Each stick's residual variance over the robust noise variance, shape (S,).
 
     The residual variance is corrected for the degrees of freedom of the stick's
-    fit (D translations and 3 rotation angles per frame it is seen in, 3 local
-    coordinates per point), the noise variance is :func:`noise_variance`'s lower
-    quartile over sticks. A rigid stick fits at about 1 (measured on random
-    figures: 0.95-1.34, mostly below 1.15); a stick holding points of two parts
-    beside a joint 1.4-3.5, two body segments joined in one stick far more.
+    fit (:func:`fit_dof`, as the noise variance is: D translations per frame it is
+    seen in, 3 rotation angles where its rotation is fitted rather than
+    interpolated, 3 local coordinates per point), the noise variance is
+    :func:`noise_variance`'s lower quartile over sticks. A rigid stick fits at
+    about 1 (measured on random figures: 0.95-1.34, mostly below 1.15); a stick
+    holding points of two parts beside a joint 1.4-3.5, two body segments joined
+    in one stick far more.
     """
     rss, var = noise_variance(st, obs, priors)
-    des = st.design(obs)
-    D = obs.n_dims
-    dof = des.n.sum(axis=1) * D - (des.n > 0).sum(axis=1) * (3 + D) - 3 * np.bincount(st.labels,
-                                                                                      minlength=st.n_sticks)
+    dof = fit_dof(st, obs)
     return np.where(dof > 0, rss / (var * np.maximum(dof, 1)), 0.0)
 
 
