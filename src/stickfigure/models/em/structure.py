@@ -171,11 +171,11 @@ def components(st: StickState, without: int | None = None) -> tuple[np.ndarray, 
                 parent[ra] = rb
     comp = np.array([find(s) for s in range(S)])
     _, comp = np.unique(comp, return_inverse=True)
-    # A vertex belongs to the component of its (kept) endpoints; one left with only the
-    # detached endpoint, to that endpoint's stick.
-    owner = np.where(first >= 0, first, -1)
-    for j in np.flatnonzero(owner < 0):
-        owner[j] = np.flatnonzero(st.vertex_of == j)[0] // E
+    # A vertex belongs to the component of its (kept) endpoints; the only one that can be left
+    # without any is the detached endpoint's own, which goes with that endpoint's stick.
+    owner = first.copy()
+    if without is not None and owner[st.vertex_of[without]] < 0:
+        owner[st.vertex_of[without]] = without // E
     return comp, comp[owner]
 
 
