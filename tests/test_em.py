@@ -158,6 +158,7 @@ def test_save_load_and_impute_after_loading(tmp_path, chain, fitted):
     ({"oversegment": 0.5}, "oversegment"),
     ({"holdout": 1.5}, "holdout"),
     ({"n_jobs": 0}, "n_jobs"),
+    ({"holdout_masks": 0}, "holdout_masks"),
     ({"labels": [0, 1]}, "labels"),
 ])
 def test_bad_parameters(chain, bad, match):
@@ -421,8 +422,11 @@ def test_cross_body_two_point_stick_is_dissolved_by_prediction():
     # dissolved and the points given back to their parts.
     from stickfigure.models.em import fit_stages
     from stickfigure.models.em.model import Priors, normalise
+    from stickfigure.models.em.impute import heldout_error
     from stickfigure.models.em.refine import heldout_dissolve
     from stickfigure.models.em.structure import EMSettings
+    from stickfigure.synthetic import occlude
+    from stickfigure.trajectories import Trajectories
 
     traj = sf.synthetic.random_figure(n_sticks=4, frames=90, noise=0.01, seed=3)
     T = traj.labels_true
@@ -446,6 +450,17 @@ def test_cross_body_two_point_stick_is_dissolved_by_prediction():
     assert gone == [sorted(far)]
     assert adjusted_rand_score(T, out.labels) == 1.0
     assert info["error_after"] < info["error_before"]
+    # With several masks (holdout_masks) the errors are pooled over independent occlusion
+    # masks drawn from the generator in turn, and the same stick goes.
+    rng = np.random.default_rng(0)
+    xy = np.where(obs.mask[..., None] > 0, obs.w, np.nan)
+    masks = [occlude(Trajectories(xy), seed=rng, bar_fraction=0.075, random_fraction=0.075)[1] for _ in range(3)]
+    assert not np.array_equal(masks[0], masks[1])
+    pooled = sum(heldout_error(st, obs, Priors(), settings, h) for h in masks).sum()
+    out, _, _, gone, info = heldout_dissolve(st, obs, Priors(), settings, np.random.default_rng(0),
+                                             stages[sel].objective, 3, 0.15, n_masks=3)
+    assert info["error_before"] == pytest.approx(np.sqrt(pooled / (2 * sum(h.sum() for h in masks))))
+    assert gone == [sorted(far)]
 
 
 def test_true_joints_are_rigid(chain):

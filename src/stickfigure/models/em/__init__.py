@@ -123,11 +123,17 @@ class EMSkeleton(StickEstimator):
         Last, every stick of at most ``dissolve_points`` points is tried without it
         again, now judged by prediction: this fraction of the observed entries is
         hidden as occlusions hide them (half by a sweeping bar, half at random) and
-        predicted from the rest with the structure fixed (as in
-        imputation), and a dissolution is kept when it predicts them better. A
+        predicted from the rest with the structure fixed (as in imputation), and a
+        dissolution is kept when it predicts them better. A
         2-point stick fits any two 2D trajectories exactly, so the likelihood (and
         BIC) cannot reject one that pairs markers across a body; hiding one of its
         points shows it (docs/em.md section 6). None: off.
+    holdout_masks : int
+        Independent occlusion masks the held-out check sums its errors over. With
+        one, which small sticks it dissolves depends on where the mask's bar falls,
+        so on motion capture the seed can decide between skeletons; three made the
+        outcome the same for seeds that had differed, at about 20-25 % more time on
+        human-sized problems (docs/em.md section 11).
     reattach : bool
         Finally, sub-tree moves: a joint is cut where a part of the tree has a
         clearly better least-squares joint with a stick on the other side (residual
@@ -180,7 +186,7 @@ class EMSkeleton(StickEstimator):
                  reuse_scores: bool = True, tol: float = 1e-4, min_stick_points: int = 3,
                  max_sticks: int | None = None, labels: Any = None, refine_sticks: bool = True,
                  articulated_rounds: int = 4, dissolve_points: int = 3, resplit: bool = True,
-                 holdout: float | None = 0.15, reattach: bool = True,
+                 holdout: float | None = 0.15, holdout_masks: int = 1, reattach: bool = True,
                  max_frames: int | None = 400, oversegment: float | None = 3.5, n_jobs: int | None = None,
                  tau_p: float = 25.0,
                  alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e6, impute_iter: int = 100,
@@ -208,6 +214,7 @@ class EMSkeleton(StickEstimator):
         self.dissolve_points = dissolve_points
         self.resplit = resplit
         self.holdout = holdout
+        self.holdout_masks = holdout_masks
         self.reattach = reattach
         self.max_frames = max_frames
         self.oversegment = oversegment
@@ -228,6 +235,7 @@ class EMSkeleton(StickEstimator):
             raise ValueError(f"n_ends must be >= 2 (a stick has two ends), got {self.n_ends!r}")
         check_positive(self.resample_every, "resample_every", integer=True, allow_zero=True)
         check_positive(self.n_polish, "n_polish", integer=True, allow_zero=True)
+        check_positive(self.holdout_masks, "holdout_masks", integer=True)
         check_positive(self.articulated_rounds, "articulated_rounds", integer=True, allow_zero=True)
         check_positive(self.dissolve_points, "dissolve_points", integer=True, allow_zero=True)
         check_positive(self.tol, "tol", allow_zero=True)
@@ -261,6 +269,7 @@ class EMSkeleton(StickEstimator):
                               articulated_rounds=int(self.articulated_rounds),
                               dissolve_points=int(self.dissolve_points), resplit=bool(self.resplit),
                               holdout=None if self.holdout is None else float(self.holdout),
+                              holdout_masks=int(self.holdout_masks),
                               reattach=bool(self.reattach),
                               endpoint_init=self.endpoint_init, n_ends=int(self.n_ends))
         priors = Priors(tau_p=float(self.tau_p), alpha0=float(self.alpha0), beta0=float(self.beta0),

@@ -600,7 +600,8 @@ def dissolve_small_sticks(st: StickState, obs: Observations, priors: Priors, set
 
 def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings, rng: np.random.Generator,
                      value: float, max_points: int, fraction: float, trial_iter: int | None = None,
-                     margin: float = 0.1) -> tuple[StickState, float, int, list[list[int]], dict]:
+                     margin: float = 0.1, n_masks: int = 1
+                     ) -> tuple[StickState, float, int, list[list[int]], dict]:
     """Dissolutions of small sticks judged by how well the model predicts entries it does not see.
 
     A 2-point stick in 2D fits any two trajectories whose distance stays below its
@@ -620,6 +621,10 @@ def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings
     ``fraction`` of the observed entries in every comparison, as occlusions hide them
     (:func:`stickfigure.synthetic.occlude`: a sweeping bar, then random drop-outs, half
     each), and predicts them from the rest with the structure fixed, as imputation does.
+    With ``n_masks`` > 1 it is summed over that many independent masks, drawn from
+    ``rng`` in turn: with one, which dissolutions are kept depends on where its bar
+    falls (on the whole CMU take, seeds 0-3 of one camera gave four different skeletons
+    from the same search), at ``n_masks`` times the cost of the predictions.
 
     Returns the state, its objective, the EM sweeps run, the point sets of the
     dissolved sticks, and ``{"fraction", "error_before", "error_after"}`` (RMS per
@@ -635,14 +640,19 @@ def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings
     # across one-frame gaps, which predicts well whatever the structure; a bar hides runs of
     # frames and neighbouring points together, where only the structure can predict them.
     xy = np.where(obs.mask[..., None] > 0, obs.w, np.nan)
-    _, hidden = occlude(Trajectories(xy), seed=rng, bar_fraction=0.5 * fraction, random_fraction=0.5 * fraction)
-    n_hidden = max(int(hidden.sum()) * obs.n_dims, 1)
+    masks = [occlude(Trajectories(xy), seed=rng, bar_fraction=0.5 * fraction, random_fraction=0.5 * fraction)[1]
+             for _ in range(n_masks)]
+    n_hidden = max(int(sum(h.sum() for h in masks)) * obs.n_dims, 1)
     trial_iter = settings.n_iter if trial_iter is None else trial_iter
-    err = first = heldout_error(st, obs, priors, settings, hidden)  # (P,)
+
+    def errors(state: StickState) -> np.ndarray:  # (P,) summed over the masks
+        return sum(heldout_error(state, obs, priors, settings, h) for h in masks)
+
+    err = first = errors(st)
     tried: set[tuple[int, ...]] = set()
     done: list[list[int]] = []
     sweeps = 0
-    n_hid = hidden.sum(axis=1)
+    n_hid = sum(h.sum(axis=1) for h in masks)
     while st.n_sticks > 1:
         # The worst-predicted stick first: a stick that pairs markers across the body also
         # spoils the prediction of the sticks jointed to it, which may be right.
@@ -655,7 +665,7 @@ def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings
         trial = dissolve_stick(st, obs, priors, s)
         trial, val, n = run_em(trial, obs, priors, settings, trial_iter, rng)
         sweeps += n
-        e = heldout_error(trial, obs, priors, settings, hidden)
+        e = errors(trial)
         pts = np.array(key)
         near = np.isin(trial.labels, trial.labels[pts]) | np.isin(np.arange(obs.n_points), pts)
         if e[near].sum() < (1.0 - margin) * err[near].sum():

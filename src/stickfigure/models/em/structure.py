@@ -91,6 +91,7 @@ class EMSettings:
     dissolve_points: int = 3
     resplit: bool = True
     holdout: float | None = 0.15
+    holdout_masks: int = 1
     reattach: bool = True
 
 
@@ -917,7 +918,8 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
         _, at, cur = best[selection]
         cur, val, n, gone, hinfo = heldout_dissolve(cur.copy(), obs, priors, settings, child_rng(rng),
                                                     stages[at].objective,
-                                                    settings.dissolve_points, settings.holdout)
+                                                    settings.dissolve_points, settings.holdout,
+                                                    n_masks=settings.holdout_masks)
         if gone:
             stages.append(_stage(cur, obs, val, None, n, ref))
             stages[-1].dissolved = gone
