@@ -131,9 +131,9 @@ class EMSkeleton(StickEstimator):
     holdout_masks : int
         Independent occlusion masks the held-out check sums its errors over. With
         one, which small sticks it dissolves depends on where the mask's bar falls,
-        so on motion capture the seed can decide between skeletons; three made the
-        outcome the same for seeds that had differed, at about 20-25 % more time on
-        human-sized problems (docs/em.md section 11).
+        so on motion capture the seed can decide between skeletons; on one camera of
+        the CMU take three gave two seeds that had differed the same skeleton, at about
+        20-25 % more time on human-sized problems (docs/em.md section 11).
     reattach : bool
         Finally, sub-tree moves: a joint is cut where a part of the tree has a
         clearly better least-squares joint with a stick on the other side (residual

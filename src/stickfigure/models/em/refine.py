@@ -633,6 +633,8 @@ def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings
     from .impute import heldout_error
     from .structure import run_em
 
+    if int(n_masks) < 1:
+        raise ValueError(f"n_masks must be a positive integer, got {n_masks!r}")
     if not np.any(np.bincount(st.labels, minlength=st.n_sticks) <= max_points):  # nothing to try
         return st, value, 0, [], {"fraction": float(fraction), "error_before": None, "error_after": None}
     # Hidden as occlusions are (synthetic.occlude: a sweeping bar, then random drop-outs, half
