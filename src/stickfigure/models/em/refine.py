@@ -27,6 +27,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..._validation import check_positive
 from ...synthetic import occlude
 from ...trajectories import Trajectories
 from .initialise import initial_state
@@ -633,8 +634,7 @@ def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings
     from .impute import heldout_error
     from .structure import run_em
 
-    if int(n_masks) < 1:
-        raise ValueError(f"n_masks must be a positive integer, got {n_masks!r}")
+    n_masks = check_positive(n_masks, "n_masks", integer=True)
     if not np.any(np.bincount(st.labels, minlength=st.n_sticks) <= max_points):  # nothing to try
         return st, value, 0, [], {"fraction": float(fraction), "error_before": None, "error_after": None}
     # Hidden as occlusions are (synthetic.occlude: a sweeping bar, then random drop-outs, half
@@ -644,7 +644,8 @@ def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings
     xy = np.where(obs.mask[..., None] > 0, obs.w, np.nan)
     masks = [occlude(Trajectories(xy), seed=rng, bar_fraction=0.5 * fraction, random_fraction=0.5 * fraction)[1]
              for _ in range(n_masks)]
-    n_hidden = max(int(sum(h.sum() for h in masks)) * obs.n_dims, 1)
+    n_hid = sum(h.sum(axis=1) for h in masks)  # (P,) hidden entries per point, all masks
+    n_hidden = max(int(n_hid.sum()) * obs.n_dims, 1)
     trial_iter = settings.n_iter if trial_iter is None else trial_iter
 
     def errors(state: StickState) -> np.ndarray:  # (P,) summed over the masks
@@ -654,7 +655,6 @@ def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings
     tried: set[tuple[int, ...]] = set()
     done: list[list[int]] = []
     sweeps = 0
-    n_hid = sum(h.sum(axis=1) for h in masks)
     while st.n_sticks > 1:
         # The worst-predicted stick first: a stick that pairs markers across the body also
         # spoils the prediction of the sticks jointed to it, which may be right.
