@@ -692,3 +692,36 @@ def test_cmu_whole_take_at_its_own_rate_gives_a_body_tree(data_dir):
     s = score_skeleton(sk, traj)
     assert sk.n_sticks >= 8 and len(sk.edges) == sk.n_sticks - 1  # one tree
     assert s["coherent_sticks"] == 1.0 and s["anatomical_edges"] == 1.0
+
+
+@pytest.mark.parametrize("remerge", [True, False])
+def test_search_resumes_after_a_dissolution(monkeypatch, remerge):
+    # A dissolution kept by the held-out check can leave the trees it linked apart (on the whole
+    # CMU take a camera kept 7 trees). Here the check is replaced by one that cuts a true joint
+    # of the selected tree (as a dissolved stick's lost joint would): with remerge the merge
+    # search goes on from that forest and joins the figure again; without it the cut stays.
+    from stickfigure.models.em import refine, structure
+    from stickfigure.models.em.tree import detach_endpoint
+
+    def cut_a_joint(st, obs, priors, settings, rng, value, *args, **kwargs):
+        shared = np.flatnonzero(st.vertex_counts() >= 2)
+        e = int(np.flatnonzero(st.vertex_of == shared[0])[0])
+        out, val, n = structure.run_em(detach_endpoint(st, e, priors), obs, priors, settings, 50, rng,
+                                       resample=False)
+        return out, val, n, [[0]], {"fraction": 0.15, "error_before": 1.0, "error_after": 0.5}
+
+    monkeypatch.setattr(refine, "heldout_dissolve", cut_a_joint)
+    traj = sf.synthetic.random_figure(n_sticks=4, frames=80, noise=0.01, seed=2)
+    sk = sf.fit(traj, method="em", random_state=0, labels=traj.labels_true, n_iter=80, refine_sticks=False,
+                resplit=False, resample_every=0, reattach=False, remerge=remerge)
+    stages = sk.info["stages"]
+    cut = [i for i, s in enumerate(stages) if s["heldout"] is not None]
+    assert len(cut) == 1 and len(stages[cut[0]]["edges"]) == 2
+    truth = {tuple(sorted(e)) for e in traj.edges_true}
+    if remerge:
+        assert len(stages) == cut[0] + 2 and stages[-1]["merged"] is not None
+        assert sk.info["selected_stage"] == cut[0] + 1
+        assert {tuple(sorted(e)) for e in sk.edges} == truth
+    else:
+        assert len(stages) == cut[0] + 1 and sk.info["selected_stage"] == cut[0]
+        assert len(sk.edges) == 2 and {tuple(sorted(e)) for e in sk.edges} < truth

@@ -134,6 +134,13 @@ class EMSkeleton(StickEstimator):
         so on motion capture the seed can decide between skeletons; on one camera of
         the CMU take three gave two seeds that had differed the same skeleton, at about
         20-25 % more time on human-sized problems (docs/em.md section 11).
+    remerge : bool
+        After the held-out check dissolves sticks, the merge search goes on from
+        the new state and the stage with the best selection criterion among the
+        dissolved one and those merges is kept. A dissolved stick takes its joints
+        with it, and the trees it linked stay apart unless the search looks at them
+        again (on the whole CMU take: 7 trees left on one camera, 3 on another).
+        False: the dissolved state as it is.
     reattach : bool
         Finally, sub-tree moves: a joint is cut where a part of the tree has a
         clearly better least-squares joint with a stick on the other side (residual
@@ -186,7 +193,8 @@ class EMSkeleton(StickEstimator):
                  reuse_scores: bool = True, tol: float = 1e-4, min_stick_points: int = 3,
                  max_sticks: int | None = None, labels: Any = None, refine_sticks: bool = True,
                  articulated_rounds: int = 4, dissolve_points: int = 3, resplit: bool = True,
-                 holdout: float | None = 0.15, holdout_masks: int = 1, reattach: bool = True,
+                 holdout: float | None = 0.15, holdout_masks: int = 1, remerge: bool = True,
+                 reattach: bool = True,
                  max_frames: int | None = 400, oversegment: float | None = 3.5, n_jobs: int | None = None,
                  tau_p: float = 25.0,
                  alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e6, impute_iter: int = 100,
@@ -215,6 +223,7 @@ class EMSkeleton(StickEstimator):
         self.resplit = resplit
         self.holdout = holdout
         self.holdout_masks = holdout_masks
+        self.remerge = remerge
         self.reattach = reattach
         self.max_frames = max_frames
         self.oversegment = oversegment
@@ -270,7 +279,7 @@ class EMSkeleton(StickEstimator):
                               dissolve_points=int(self.dissolve_points), resplit=bool(self.resplit),
                               holdout=None if self.holdout is None else float(self.holdout),
                               holdout_masks=int(self.holdout_masks),
-                              reattach=bool(self.reattach),
+                              remerge=bool(self.remerge), reattach=bool(self.reattach),
                               endpoint_init=self.endpoint_init, n_ends=int(self.n_ends))
         priors = Priors(tau_p=float(self.tau_p), alpha0=float(self.alpha0), beta0=float(self.beta0),
                         max_precision=float(self.max_precision))

@@ -52,7 +52,7 @@ Deviations from the printed algorithm, each a parameter (docs/em.md):
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -92,6 +92,7 @@ class EMSettings:
     resplit: bool = True
     holdout: float | None = 0.15
     holdout_masks: int = 1
+    remerge: bool = True
     reattach: bool = True
 
 
@@ -785,49 +786,17 @@ def _stage(st: StickState, obs: Observations, value: float, merged: tuple[int, i
                  joints_xy=st.mu_v[:, ref].copy())
 
 
-def learn_structure(st: StickState, obs: Observations, priors: Priors, settings: EMSettings,
-                    rng: np.random.Generator, *, selection: str = "bic",
-                    progress: Callable[[int, int, float], None] | None = None) -> tuple[list[Stage], int]:
-    """Fig. 3 of the paper from an initial state; returns every stage and the selected one.
+def greedy_merges(st: StickState, obs: Observations, priors: Priors, settings: EMSettings,
+                  rng: np.random.Generator, ref: int, max_merges: int | None
+                  ) -> Iterator[tuple[Stage, StickState]]:
+    """The merge loop of Fig. 3: score every valid vertex-pair merge, take the best, re-optimise.
 
-    The states of the best stage under each criterion are kept in ``Stage.state``.
+    Yields each stage and its state (the generator's own; copy it to keep it) after
+    every merge, until one tree is left or ``max_merges`` merges are done.
     """
-    ref = int(np.argmax(obs.mask.sum(axis=0)))
-    st, val, sweeps = run_em(st, obs, priors, settings, settings.n_iter, rng)
-    refinements = []
-    for _ in range(3 if settings.refine_sticks else 0):
-        from .initialise import initial_state
-        from .refine import refine_labels
-
-        labels, what = refine_labels(st, obs, rng, min_points=settings.min_stick_points, priors=priors)
-        if not what["splits"] and not what["joins"]:
-            break
-        refinements.append(what)
-        st = initial_state(obs, labels, int(labels.max()) + 1, priors, rng, endpoint_init=settings.endpoint_init,
-                           n_ends=settings.n_ends)
-        st, val, more = run_em(st, obs, priors, settings, settings.n_iter, rng)
-        sweeps += more
-    for _ in range(settings.articulated_rounds if settings.refine_sticks else 0):
-        from .refine import apply_articulated_splits, articulated_split_candidates
-
-        splits = articulated_split_candidates(st, obs, priors)
-        if not splits:
-            break
-        new = apply_articulated_splits(st, obs, priors, splits)
-        if new is st:
-            break
-        refinements.append({"articulated_splits": [int(s) for s, _ in splits]})
-        st, val, more = run_em(new, obs, priors, settings, settings.n_iter, rng)
-        sweeps += more
-    stages = [_stage(st, obs, val, None, sweeps, ref)]
-    stages[0].refinements = refinements
-    best = {"objective": (stages[0].objective, 0, st.copy()), "bic": (stages[0].bic, 0, st.copy())}
-    total = st.n_sticks - 1 if settings.max_merges is None else min(settings.max_merges, st.n_sticks - 1)
-    if progress:
-        progress(0, total, val)
     k = 0
     cache: dict[tuple, tuple[float, frozenset]] = {}
-    while settings.max_merges is None or k < settings.max_merges:
+    while max_merges is None or k < max_merges:
         cands = merge_candidates(st, settings, st.design(obs).n)
         if not cands:
             break
@@ -868,14 +837,59 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
             dirty = merged_sticks | moved
             cache = {key: v for key, v in cache.items() if not (v[1] & dirty)}
         k += 1
-        stages.append(_stage(st, obs, val, (j1, j2), sweeps, ref))
+        yield _stage(st, obs, val, (j1, j2), sweeps, ref), st
+
+
+def learn_structure(st: StickState, obs: Observations, priors: Priors, settings: EMSettings,
+                    rng: np.random.Generator, *, selection: str = "bic",
+                    progress: Callable[[int, int, float], None] | None = None) -> tuple[list[Stage], int]:
+    """Fig. 3 of the paper from an initial state; returns every stage and the selected one.
+
+    The states of the best stage under each criterion are kept in ``Stage.state``.
+    """
+    ref = int(np.argmax(obs.mask.sum(axis=0)))
+    st, val, sweeps = run_em(st, obs, priors, settings, settings.n_iter, rng)
+    refinements = []
+    for _ in range(3 if settings.refine_sticks else 0):
+        from .initialise import initial_state
+        from .refine import refine_labels
+
+        labels, what = refine_labels(st, obs, rng, min_points=settings.min_stick_points, priors=priors)
+        if not what["splits"] and not what["joins"]:
+            break
+        refinements.append(what)
+        st = initial_state(obs, labels, int(labels.max()) + 1, priors, rng, endpoint_init=settings.endpoint_init,
+                           n_ends=settings.n_ends)
+        st, val, more = run_em(st, obs, priors, settings, settings.n_iter, rng)
+        sweeps += more
+    for _ in range(settings.articulated_rounds if settings.refine_sticks else 0):
+        from .refine import apply_articulated_splits, articulated_split_candidates
+
+        splits = articulated_split_candidates(st, obs, priors)
+        if not splits:
+            break
+        new = apply_articulated_splits(st, obs, priors, splits)
+        if new is st:
+            break
+        refinements.append({"articulated_splits": [int(s) for s, _ in splits]})
+        st, val, more = run_em(new, obs, priors, settings, settings.n_iter, rng)
+        sweeps += more
+    stages = [_stage(st, obs, val, None, sweeps, ref)]
+    stages[0].refinements = refinements
+    best = {"objective": (stages[0].objective, 0, st.copy()), "bic": (stages[0].bic, 0, st.copy())}
+    total = st.n_sticks - 1 if settings.max_merges is None else min(settings.max_merges, st.n_sticks - 1)
+    if progress:
+        progress(0, total, val)
+    for k, (stage, cur) in enumerate(greedy_merges(st, obs, priors, settings, rng, ref, settings.max_merges), 1):
+        st = cur
+        stages.append(stage)
         for crit in ("objective", "bic"):
-            v = getattr(stages[-1], crit)
+            v = getattr(stage, crit)
             if v > best[crit][0]:
                 best[crit] = (v, len(stages) - 1, st.copy())
         if progress:
             comp_s, _ = components(st)
-            progress(k, k + int(comp_s.max()), val)
+            progress(k, k + int(comp_s.max()), stage.objective)
     if selection not in ("objective", "bic"):
         raise ValueError(f"selection must be 'objective' or 'bic', got {selection!r}")
     if settings.dissolve_points or settings.resplit:
@@ -925,6 +939,13 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
             stages[-1].dissolved = gone
             stages[-1].heldout = hinfo
             best[selection] = (getattr(stages[-1], selection), len(stages) - 1, cur.copy())
+            if settings.remerge:
+                top = best[selection]
+                for stage, s in greedy_merges(cur, obs, priors, settings, rng, ref, settings.max_merges):
+                    stages.append(stage)
+                    if getattr(stage, selection) > top[0]:
+                        top = (getattr(stage, selection), len(stages) - 1, s.copy())
+                best[selection] = top
     if settings.reattach:
         # Sub-tree moves (tree.py): the greedy search never undoes a merge, and a contracted
         # stick links its two neighbours whatever they are; a part hanging from the wrong stick
