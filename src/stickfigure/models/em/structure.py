@@ -47,6 +47,11 @@ Deviations from the printed algorithm, each a parameter (docs/em.md):
   ``tol * |objective|`` over ``resample_every`` iterations and the last resampling
   moved at most 2% of the points (sampled assignments keep flipping a few
   ambiguous points near joints). ``tol=0`` runs the fixed number of iterations.
+* ``remerge`` (default True): when the held-out check (``refine.heldout_dissolve``)
+  dissolves sticks, the merge loop (:func:`greedy_merges`) goes on from that state,
+  because a dissolved stick takes its joints with it and the trees it linked would
+  stay apart; the best stage by the selection criterion among the dissolved state
+  and those merges is kept.
 """
 
 from __future__ import annotations
