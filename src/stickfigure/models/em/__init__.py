@@ -140,7 +140,9 @@ class EMSkeleton(StickEstimator):
         dissolved one and those merges is kept. A dissolved stick takes its joints
         with it, and the trees it linked stay apart unless the search looks at them
         again (on the whole CMU take: 7 trees left on one camera, 3 on another).
-        False: the dissolved state as it is.
+        Where the dissolution removed a body segment's stick, the link it adds is
+        wrong: on ten random cameras of the CMU take 5 of its 10 links were not
+        anatomical (docs/em.md section 11). False: the dissolved state as it is.
     reattach : bool
         Finally, sub-tree moves: a joint is cut where a part of the tree has a
         clearly better least-squares joint with a stick on the other side (residual
