@@ -159,6 +159,7 @@ def test_save_load_and_impute_after_loading(tmp_path, chain, fitted):
     ({"holdout": 1.5}, "holdout"),
     ({"n_jobs": 0}, "n_jobs"),
     ({"holdout_masks": 0}, "holdout_masks"),
+    ({"dissolve_scope": "middle"}, "dissolve_scope"),
     ({"labels": [0, 1]}, "labels"),
 ])
 def test_bad_parameters(chain, bad, match):
@@ -725,3 +726,29 @@ def test_search_resumes_after_a_dissolution(monkeypatch, remerge):
     else:
         assert len(stages) == cut[0] + 1 and sk.info["selected_stage"] == cut[0]
         assert len(sk.edges) == 2 and {tuple(sorted(e)) for e in sk.edges} < truth
+
+
+
+def test_leaves_scope_keeps_a_stick_between_two_joints(chain):
+    # dissolve_scope="leaves": a stick with endpoints on two joints (a thigh between the pelvis
+    # and the shin) is never offered to the dissolutions; the two end sticks of the chain are.
+    from stickfigure.models.em import fit_stages
+    from stickfigure.models.em.model import Priors
+    from stickfigure.models.em.refine import _joints_per_stick, _next_small_stick
+    from stickfigure.models.em.structure import EMSettings, stick_edges
+
+    stages, sel, _, _ = fit_stages(chain, EMSettings(n_iter=100), Priors(), np.random.default_rng(0),
+                                   labels=chain.labels_true)
+    state = stages[sel].state
+    edges, _ = stick_edges(state)
+    assert state.n_sticks == 3 and len(edges) == 2
+    middle = [s for s in range(3) if sum(s in e for e in edges) == 2][0]
+    assert _joints_per_stick(state).tolist() == [2 if s == middle else 1 for s in range(3)]
+    order = np.arange(3)
+    got, tried = [], set()
+    while (nxt := _next_small_stick(state, order, 100, tried, "leaves")) is not None:
+        got.append(nxt[0])
+    assert sorted(got) == sorted(set(range(3)) - {middle})
+    assert _next_small_stick(state, np.array([middle]), 100, set(), "all")[0] == middle
+    with pytest.raises(ValueError, match="scope"):
+        _next_small_stick(state, order, 100, set(), "middle")

@@ -523,17 +523,30 @@ def dissolve_stick(st: StickState, obs: Observations, priors: Priors, s: int) ->
     return out
 
 
-def _next_small_stick(st: StickState, order: np.ndarray, max_points: int, tried: set
+def _next_small_stick(st: StickState, order: np.ndarray, max_points: int, tried: set, scope: str = "all"
                       ) -> tuple[int, tuple[int, ...]] | None:
     """The first stick in ``order`` with at most ``max_points`` points whose point set is not in
-    ``tried`` (which it joins), as (stick, point set); None when there is none."""
+    ``tried`` (which it joins), as (stick, point set); None when there is none. With
+    ``scope="leaves"`` only sticks with at most one joint count."""
+    if scope not in ("all", "leaves"):
+        raise ValueError(f"scope must be 'all' or 'leaves', got {scope!r}")
     sizes = np.bincount(st.labels, minlength=st.n_sticks)
+    if scope == "leaves":
+        order = np.asarray(order)[_joints_per_stick(st)[np.asarray(order)] <= 1]
     for s in order:
         key = tuple(np.flatnonzero(st.labels == s).tolist())
         if sizes[s] <= max_points and key not in tried:
             tried.add(key)
             return int(s), key
     return None
+
+
+def _joints_per_stick(st: StickState) -> np.ndarray:
+    """How many shared vertices (joints) each stick has an endpoint on, shape (S,)."""
+    E = st.ends_per_stick
+    shared = (st.vertex_counts() >= 2)[st.vertex_of].reshape(st.n_sticks, E)
+    verts = st.vertex_of.reshape(st.n_sticks, E)
+    return np.array([np.unique(verts[s][shared[s]]).size for s in range(st.n_sticks)], dtype=int)
 
 
 def _dissolve_loss(st: StickState, obs: Observations, priors: Priors, s: int) -> float:
@@ -550,7 +563,8 @@ def _dissolve_loss(st: StickState, obs: Observations, priors: Priors, s: int) ->
 
 def dissolve_small_sticks(st: StickState, obs: Observations, priors: Priors, settings, rng: np.random.Generator,
                           value: float, criterion: Callable[[StickState, float], float], max_points: int,
-                          trial_iter: int | None = None) -> tuple[StickState, float, int, list[list[int]]]:
+                          trial_iter: int | None = None, scope: str = "all"
+                          ) -> tuple[StickState, float, int, list[list[int]]]:
     """Hartigan-style moves of whole small sticks: keep a dissolution when the criterion improves.
 
     Every stick with at most ``max_points`` points (smallest first) is tried once,
@@ -564,6 +578,9 @@ def dissolve_small_sticks(st: StickState, obs: Observations, priors: Priors, set
     clustering error that an articulated split or the resampling turned into a
     stick of its own) fits its points almost exactly, so the objective alone
     favours it; BIC charges its per-frame rotations.
+    With ``scope="leaves"`` only sticks with at most one joint are tried: a stick
+    between two joints (a thigh, between the pelvis and the shin) is kept, because
+    once it is gone no link of the part below it is right (docs/em.md section 11).
 
     Returns the state, its objective, the EM sweeps run, and the point sets of the
     dissolved sticks.
@@ -580,7 +597,7 @@ def dissolve_small_sticks(st: StickState, obs: Observations, priors: Priors, set
     sweeps = 0
     while st.n_sticks > 1:
         nxt = _next_small_stick(st, np.argsort(np.bincount(st.labels, minlength=st.n_sticks), kind="stable"),
-                                max_points, tried)
+                                max_points, tried, scope)
         if nxt is None:
             break
         s, key = nxt
@@ -601,7 +618,7 @@ def dissolve_small_sticks(st: StickState, obs: Observations, priors: Priors, set
 
 def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings, rng: np.random.Generator,
                      value: float, max_points: int, fraction: float, trial_iter: int | None = None,
-                     margin: float = 0.1, n_masks: int = 1
+                     margin: float = 0.1, n_masks: int = 1, scope: str = "all"
                      ) -> tuple[StickState, float, int, list[list[int]], dict]:
     """Dissolutions of small sticks judged by how well the model predicts entries it does not see.
 
@@ -626,6 +643,8 @@ def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings
     ``rng`` in turn: with one, which dissolutions are kept depends on where its bar
     falls (on the whole CMU take, seeds 0-3 of one camera gave four different skeletons
     from the same search), at ``n_masks`` times the cost of the predictions.
+    With ``scope="leaves"`` only sticks with at most one joint are tried (as in
+    :func:`dissolve_small_sticks`).
 
     Returns the state, its objective, the EM sweeps run, the point sets of the
     dissolved sticks, and ``{"fraction", "error_before", "error_after"}`` (RMS per
@@ -660,7 +679,7 @@ def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings
         # spoils the prediction of the sticks jointed to it, which may be right.
         worst = np.bincount(st.labels, weights=err, minlength=st.n_sticks) / np.maximum(
             np.bincount(st.labels, weights=n_hid, minlength=st.n_sticks), 1)
-        nxt = _next_small_stick(st, np.argsort(-worst, kind="stable"), max_points, tried)
+        nxt = _next_small_stick(st, np.argsort(-worst, kind="stable"), max_points, tried, scope)
         if nxt is None:
             break
         s, key = nxt

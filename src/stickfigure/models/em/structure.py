@@ -97,6 +97,7 @@ class EMSettings:
     resplit: bool = True
     holdout: float | None = 0.15
     holdout_masks: int = 1
+    dissolve_scope: str = "all"
     remerge: bool = True
     reattach: bool = True
 
@@ -912,7 +913,7 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
             cur, val, sweeps, moved = resplit_pairs(cur, obs, priors, settings, rng, val, criterion)
         if settings.dissolve_points:
             cur, val, n, gone = dissolve_small_sticks(cur, obs, priors, settings, rng, val, criterion,
-                                                      settings.dissolve_points)
+                                                      settings.dissolve_points, scope=settings.dissolve_scope)
             sweeps += n
             if gone and settings.resplit:  # the points of a dissolved stick may sit better elsewhere
                 cur, val, n, m = resplit_pairs(cur, obs, priors, settings, rng, val, criterion)
@@ -938,7 +939,8 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
         cur, val, n, gone, hinfo = heldout_dissolve(cur.copy(), obs, priors, settings, child_rng(rng),
                                                     stages[at].objective,
                                                     settings.dissolve_points, settings.holdout,
-                                                    n_masks=settings.holdout_masks)
+                                                    n_masks=settings.holdout_masks,
+                                                    scope=settings.dissolve_scope)
         if gone:
             stages.append(_stage(cur, obs, val, None, n, ref))
             stages[-1].dissolved = gone
