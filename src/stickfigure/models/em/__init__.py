@@ -137,9 +137,9 @@ class EMSkeleton(StickEstimator):
     dissolve_scope : {"all", "leaves"}
         Which small sticks the dissolutions (``dissolve_points`` and the held-out
         check) try. "leaves": only sticks with at most one joint; a stick between
-        two joints (a thigh, between the pelvis and
-        the shin, is 2 markers in the CMU set) is kept. Once such a stick is
-        dissolved no link of the part below it is right. Measured on six CMU
+        two joints (a thigh between the pelvis and the shin, 2 markers in the CMU
+        set) is kept. Once such a stick is dissolved no link of the part below it
+        is right. Measured on six CMU
         cameras: mean edge F1 0.379 against 0.303 with "all", and one body tree
         against none; the other benchmarks are not yet measured, so it is not the
         default (docs/em.md section 11).
