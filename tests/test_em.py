@@ -728,7 +728,6 @@ def test_search_resumes_after_a_dissolution(monkeypatch, remerge):
         assert len(sk.edges) == 2 and {tuple(sorted(e)) for e in sk.edges} < truth
 
 
-
 def test_leaves_scope_keeps_a_stick_between_two_joints(chain):
     # dissolve_scope="leaves": a stick with endpoints on two joints (a thigh between the pelvis
     # and the shin) is never offered to the dissolutions; the two end sticks of the chain are.
