@@ -424,7 +424,7 @@ def test_cross_body_two_point_stick_is_dissolved_by_prediction():
     from stickfigure.models.em import fit_stages
     from stickfigure.models.em.model import Priors, normalise
     from stickfigure.models.em.impute import heldout_error
-    from stickfigure.models.em.refine import heldout_dissolve
+    from stickfigure.models.em.refine import _joints_per_stick, heldout_dissolve
     from stickfigure.models.em.structure import EMSettings
     from stickfigure.synthetic import occlude
     from stickfigure.trajectories import Trajectories
@@ -451,6 +451,12 @@ def test_cross_body_two_point_stick_is_dissolved_by_prediction():
     assert gone == [sorted(far)]
     assert adjusted_rand_score(T, out.labels) == 1.0
     assert info["error_after"] < info["error_before"]
+    # The estimator's default scope ("leaves") offers it too: the search joined the cross-body
+    # stick at one end only, so it is a leaf.
+    assert _joints_per_stick(st)[st.labels[far[0]]] == 1
+    out, _, _, gone, _ = heldout_dissolve(st, obs, Priors(), settings, np.random.default_rng(0),
+                                          stages[sel].objective, 3, 0.15, scope="leaves")
+    assert gone == [sorted(far)] and adjusted_rand_score(T, out.labels) == 1.0
     # With several masks (holdout_masks) the errors are pooled over independent occlusion
     # masks drawn from the generator in turn, and the same stick goes.
     rng = np.random.default_rng(0)

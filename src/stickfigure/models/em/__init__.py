@@ -141,8 +141,10 @@ class EMSkeleton(StickEstimator):
         set) is kept. Once such a stick is dissolved no link of the part below it
         is right. Measured on six CMU
         cameras: mean edge F1 0.379 against 0.303 with "all", and one body tree
-        against none; the other benchmarks are not yet measured, so it is not the
-        default (docs/em.md section 11).
+        against none. Not the default: a stick pairing markers across the body
+        that the search joined at both ends is then never tried, and on the 120 Hz
+        takes trained on clean data em's imputation became 3.8 (CMU) and 11
+        (HDM05) times worse than multibody SfM (docs/em.md section 11).
     remerge : bool
         After the held-out check dissolves sticks, the merge search goes on from
         the new state and the stage with the best selection criterion among the
