@@ -470,6 +470,46 @@ def test_cross_body_two_point_stick_is_dissolved_by_prediction():
     assert gone == [sorted(far)]
 
 
+def test_heldout_check_needs_the_sticks_own_points_predicted_better(chain, monkeypatch):
+    # A dissolution is kept only when it predicts better both the near set (the stick's points
+    # and the sticks that take them) and the stick's own points. The predictions are replaced
+    # by fixed errors: the first stick tried improves only its receivers' points (the EM
+    # re-run's doing, as with the CMU pelvis stick), the second improves its own points too.
+    from stickfigure.models.em import fit_stages, impute, refine
+    from stickfigure.models.em.model import Priors, normalise
+    from stickfigure.models.em.structure import EMSettings
+
+    settings = EMSettings(n_iter=30)
+    stages, sel, _, _ = fit_stages(chain, settings, Priors(), np.random.default_rng(0), labels=chain.labels_true)
+    st = stages[sel].state
+    obs, _, _ = normalise(chain.xy)
+    tried = []
+    dissolve = refine.dissolve_stick
+
+    def record(state, obs_, priors, s):
+        tried.append(np.flatnonzero(state.labels == s))
+        return dissolve(state, obs_, priors, s)
+
+    def errors(state, obs_, priors, settings_, hidden, n_iter=50):
+        if state.n_sticks == 3:
+            return np.ones(obs_.n_points)
+        if state.n_sticks == 1:
+            return np.full(obs_.n_points, 2.0)
+        e = np.full(obs_.n_points, 0.5)
+        if len(tried) == 1:
+            e[tried[0]] = 1.0
+        return e
+
+    monkeypatch.setattr(refine, "dissolve_stick", record)
+    monkeypatch.setattr(impute, "heldout_error", errors)
+    out, _, _, gone, _ = refine.heldout_dissolve(st, obs, Priors(), settings, np.random.default_rng(0),
+                                                 stages[sel].objective, 100, 0.15)
+    assert len(tried) >= 2
+    assert gone[0] == tried[1].tolist()
+    assert tried[0].tolist() not in gone
+    assert out.n_sticks == 2
+
+
 def test_true_joints_are_rigid(chain):
     from stickfigure.models.em import fit_stages
     from stickfigure.models.em.model import Priors, normalise

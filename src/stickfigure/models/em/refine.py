@@ -632,11 +632,15 @@ def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings
     predicted hundreds of millimetres off
     (docs/em.md section 11). So each stick of at most ``max_points`` points
     (the worst predicted first, each point set once) is dissolved (:func:`dissolve_stick`, then an
-    EM run of ``trial_iter`` sweeps) and the result kept when it predicts the points
-    concerned (the stick's and those of the sticks that take them) better by more
-    than ``margin`` (relative squared error); the other points' errors move with the
-    EM re-run only, and on a scene with a few badly predicted points that noise
-    would decide. The held-out error (:func:`impute.heldout_error`) hides the same
+    EM run of ``trial_iter`` sweeps) and the result kept when it predicts better, by
+    more than ``margin`` (relative squared error), both the points concerned (the
+    stick's and those of the sticks that take them) and the stick's own points. The
+    other points' errors move with the EM re-run only, and on a scene with a few
+    badly predicted points that noise would decide; and the near set alone can
+    improve through that re-run while the stick's own points get worse (on CMU
+    85_02, isometric view, a pelvis and a shin stick: 1.07 -> 2.03 and 0.97 -> 1.21
+    on their own points, docs/em.md section 6), which is no evidence against the
+    stick. The held-out error (:func:`impute.heldout_error`) hides the same
     ``fraction`` of the observed entries in every comparison, as occlusions hide them
     (:func:`stickfigure.synthetic.occlude`: a sweeping bar, then random drop-outs, half
     each), and predicts them from the rest with the structure fixed, as imputation does.
@@ -690,7 +694,13 @@ def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings
         e = errors(trial)
         pts = np.array(key)
         near = np.isin(trial.labels, trial.labels[pts]) | np.isin(np.arange(obs.n_points), pts)
-        if e[near].sum() < (1.0 - margin) * err[near].sum():
+        # Both the stick's own points and the near set must be predicted better: a small
+        # true segment (a shin, the pelvis) whose own points its dissolution predicts worse
+        # can still lower the near set's error through the EM re-run of the sticks taking
+        # them, and that is no evidence against the stick. (A stick none of whose entries the
+        # masks hid is therefore kept: nothing measures it.)
+        if (e[near].sum() < (1.0 - margin) * err[near].sum()
+                and e[pts].sum() < (1.0 - margin) * err[pts].sum()):
             st, value, err = trial, val, e
             done.append([int(p) for p in key])
     info = {"fraction": float(fraction), "error_before": float(np.sqrt(first.sum() / n_hidden)),
