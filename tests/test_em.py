@@ -451,8 +451,8 @@ def test_cross_body_two_point_stick_is_dissolved_by_prediction():
     assert gone == [sorted(far)]
     assert adjusted_rand_score(T, out.labels) == 1.0
     assert info["error_after"] < info["error_before"]
-    # The estimator's default scope ("leaves") offers it too: the search joined the cross-body
-    # stick at one end only, so it is a leaf.
+    # dissolve_scope="leaves" offers it too: the search joined the cross-body stick at one end
+    # only, so it is a leaf.
     assert _joints_per_stick(st)[st.labels[far[0]]] == 1
     out, _, _, gone, _ = heldout_dissolve(st, obs, Priors(), settings, np.random.default_rng(0),
                                           stages[sel].objective, 3, 0.15, scope="leaves")
@@ -482,6 +482,7 @@ def test_heldout_check_needs_the_sticks_own_points_predicted_better(chain, monke
     settings = EMSettings(n_iter=30)
     stages, sel, _, _ = fit_stages(chain, settings, Priors(), np.random.default_rng(0), labels=chain.labels_true)
     st = stages[sel].state
+    assert st.n_sticks == 3
     obs, _, _ = normalise(chain.xy)
     tried = []
     dissolve = refine.dissolve_stick
