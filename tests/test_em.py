@@ -424,7 +424,7 @@ def test_cross_body_two_point_stick_is_dissolved_by_prediction():
     from stickfigure.models.em import fit_stages
     from stickfigure.models.em.model import Priors, normalise
     from stickfigure.models.em.impute import heldout_error
-    from stickfigure.models.em.refine import _joints_per_stick, heldout_dissolve
+    from stickfigure.models.em.refine import heldout_dissolve
     from stickfigure.models.em.structure import EMSettings
     from stickfigure.synthetic import occlude
     from stickfigure.trajectories import Trajectories
@@ -453,7 +453,7 @@ def test_cross_body_two_point_stick_is_dissolved_by_prediction():
     assert info["error_after"] < info["error_before"]
     # dissolve_scope="leaves" offers it too: the search joined the cross-body stick at one end
     # only, so it is a leaf.
-    assert _joints_per_stick(st)[st.labels[far[0]]] == 1
+    assert st.joints_per_stick()[st.labels[far[0]]] == 1
     out, _, _, gone, _ = heldout_dissolve(st, obs, Priors(), settings, np.random.default_rng(0),
                                           stages[sel].objective, 3, 0.15, scope="leaves")
     assert gone == [sorted(far)] and adjusted_rand_score(T, out.labels) == 1.0
@@ -780,7 +780,7 @@ def test_leaves_scope_keeps_a_stick_between_two_joints(chain):
     # and the shin) is never offered to the dissolutions; the two end sticks of the chain are.
     from stickfigure.models.em import fit_stages
     from stickfigure.models.em.model import Priors
-    from stickfigure.models.em.refine import _joints_per_stick, _next_small_stick
+    from stickfigure.models.em.refine import _next_small_stick
     from stickfigure.models.em.structure import EMSettings, stick_edges
 
     stages, sel, _, _ = fit_stages(chain, EMSettings(n_iter=100), Priors(), np.random.default_rng(0),
@@ -789,7 +789,7 @@ def test_leaves_scope_keeps_a_stick_between_two_joints(chain):
     edges, _ = stick_edges(state)
     assert state.n_sticks == 3 and len(edges) == 2
     middle = [s for s in range(3) if sum(s in e for e in edges) == 2][0]
-    assert _joints_per_stick(state).tolist() == [2 if s == middle else 1 for s in range(3)]
+    assert state.joints_per_stick().tolist() == [2 if s == middle else 1 for s in range(3)]
     order = np.arange(3)
     got, tried = [], set()
     while (nxt := _next_small_stick(state, order, 100, tried, "leaves")) is not None:

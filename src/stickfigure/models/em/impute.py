@@ -121,7 +121,7 @@ def refit_motions(st: StickState, obs: Observations, priors: Priors, settings: A
     branches apart.
     """
     # A joint (an endpoint on a vertex shared with another stick) pins a point of the stick too.
-    joined = (st.vertex_counts() >= 2)[st.vertex_of].reshape(st.n_sticks, -1).sum(axis=1)
+    joined = st.joints_per_stick()
     hold = st.design(obs).n + joined[:, None] < 3
     every = max(int(settings.resample_every), 1) if settings.resample_every else 10
     for it in range(n_iter):

@@ -312,6 +312,14 @@ class StickState:
         """Number of (own) endpoints on each vertex, shape (J,)."""
         return np.bincount(self.vertex_of, minlength=self.n_vertices).astype(float)
 
+    def joints_per_stick(self) -> np.ndarray:
+        """Number of each stick's endpoints on a joint (a vertex shared with another stick), shape (S,).
+
+        Merges join only different trees, so no two endpoints of a stick share a vertex
+        and this is also the number of joints the stick is on.
+        """
+        return (self.vertex_counts() >= 2)[self.vertex_of].reshape(self.n_sticks, -1).sum(axis=1)
+
     def copy(self) -> "StickState":
         arrays = {k: getattr(self, k).copy() for k in ("labels", "vertex_of", "rot", "trans", "local", "ends",
                                                         "mu_e", "tau_e", "mu_v", "tau_v", "alpha", "beta")}

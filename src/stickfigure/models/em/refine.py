@@ -533,21 +533,13 @@ def _next_small_stick(st: StickState, order: np.ndarray, max_points: int, tried:
     sizes = np.bincount(st.labels, minlength=st.n_sticks)
     if scope == "leaves":
         order = np.asarray(order)
-        order = order[_joints_per_stick(st)[order] <= 1]
+        order = order[st.joints_per_stick()[order] <= 1]
     for s in order:
         key = tuple(np.flatnonzero(st.labels == s).tolist())
         if sizes[s] <= max_points and key not in tried:
             tried.add(key)
             return int(s), key
     return None
-
-
-def _joints_per_stick(st: StickState) -> np.ndarray:
-    """How many shared vertices (joints) each stick has an endpoint on, shape (S,)."""
-    verts = st.vertex_of.reshape(st.n_sticks, st.ends_per_stick)
-    # Unshared vertices as -1, sorted per stick: count the distinct non-negative entries.
-    v = np.sort(np.where((st.vertex_counts() >= 2)[verts], verts, -1), axis=1)
-    return (v[:, 0] >= 0).astype(int) + np.sum((v[:, 1:] >= 0) & (v[:, 1:] != v[:, :-1]), axis=1)
 
 
 def _dissolve_loss(st: StickState, obs: Observations, priors: Priors, s: int) -> float:
