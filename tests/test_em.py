@@ -159,6 +159,7 @@ def test_save_load_and_impute_after_loading(tmp_path, chain, fitted):
     ({"holdout": 1.5}, "holdout"),
     ({"n_jobs": 0}, "n_jobs"),
     ({"holdout_masks": 0}, "holdout_masks"),
+    ({"holdout_points": 0}, "holdout_points"),
     ({"dissolve_scope": "middle"}, "dissolve_scope"),
     ({"labels": [0, 1]}, "labels"),
 ])
@@ -509,6 +510,75 @@ def test_heldout_check_needs_the_sticks_own_points_predicted_better(chain, monke
     assert gone[0] == tried[1].tolist()
     assert tried[0].tolist() not in gone
     assert out.n_sticks == 2
+
+
+def test_heldout_check_leaves_rigid_three_point_sticks_to_the_likelihood(monkeypatch):
+    # Sticks of at most free_points (holdout_points, default 2) points are always offered to
+    # the held-out check; a larger one only while its fit is suspect (misfit ratio above
+    # 1.25). A 3-point stick that fits at the noise level is the likelihood's to judge:
+    # prediction is biased against it (all three hidden by the bar). (True 3-point parts do
+    # not always fit that well: here two of the four are above 1.25, and are offered.)
+    from stickfigure.models.em import fit_stages, refine
+    from stickfigure.models.em.model import Priors, normalise
+    from stickfigure.models.em.structure import EMSettings
+
+    traj = sf.synthetic.random_figure(n_sticks=4, frames=90, noise=0.01, seed=3, points_per_stick=3)
+    settings = EMSettings(n_iter=60, resample_every=0, refine_sticks=False, dissolve_points=0, resplit=False,
+                          holdout=None)
+    stages, sel, _, _ = fit_stages(traj, settings, Priors(), np.random.default_rng(0), labels=traj.labels_true)
+    st = stages[sel].state
+    obs, _, _ = normalise(traj.xy)
+    ratio = refine.misfit_ratios(st, obs, Priors())
+    sticks = [tuple(np.flatnonzero(st.labels == s)) for s in range(st.n_sticks)]
+    rigid = {sticks[s] for s in np.flatnonzero(ratio <= 1.25)}
+    assert st.n_sticks == 4 and len(rigid) == 2
+    tried = []
+    dissolve = refine.dissolve_stick
+
+    def record(state, obs_, priors, s):
+        tried.append(tuple(np.flatnonzero(state.labels == s)))
+        return dissolve(state, obs_, priors, s)
+
+    monkeypatch.setattr(refine, "dissolve_stick", record)
+
+    def check(**kw):
+        tried.clear()
+        refine.heldout_dissolve(st, obs, Priors(), settings, np.random.default_rng(0), stages[sel].objective, 3,
+                                0.15, **kw)
+        return set(tried)
+
+    assert check(free_points=2).isdisjoint(rigid)
+    assert rigid <= check(free_points=None)  # without the gate every 3-point stick is offered
+    # A stick whose fit turns suspect is offered.
+    first = sorted(rigid)[0]
+    ratios = refine.misfit_ratios
+
+    def suspect(state, o, p):
+        out = ratios(state, o, p)
+        out[state.labels[first[0]]] = 2.0
+        return out
+
+    monkeypatch.setattr(refine, "misfit_ratios", suspect)
+    got = check(free_points=2)
+    assert first in got and got.isdisjoint(rigid - {first})
+
+
+@pytest.mark.parametrize("kw,free,largest", [({}, 2, 3), ({"holdout_points": 3}, 3, 3),
+                                             ({"dissolve_points": 2}, 2, 2)])
+def test_heldout_points_reaches_the_check(chain, monkeypatch, kw, free, largest):
+    # The estimator's holdout_points is the check's free_points; dissolve_points bounds both.
+    from stickfigure.models.em import refine
+
+    seen = []
+    check = refine.heldout_dissolve
+
+    def record(st, obs, priors, settings, rng, value, max_points, *args, **kwargs):
+        seen.append((kwargs["free_points"], max_points))
+        return check(st, obs, priors, settings, rng, value, max_points, *args, **kwargs)
+
+    monkeypatch.setattr(refine, "heldout_dissolve", record)
+    EMSkeleton(random_state=0, labels=chain.labels_true, n_iter=30, n_jobs=1, **kw).fit(chain)
+    assert seen == [(free, largest)]
 
 
 def test_true_joints_are_rigid(chain):

@@ -120,8 +120,8 @@ class EMSkeleton(StickEstimator):
         improves after EM (moves groups of points that the resampling, with each
         stick's motion fitted to its wrong points too, cannot). False: off.
     holdout : float or None
-        Last, every stick of at most ``dissolve_points`` points is tried without it
-        again, now judged by prediction: this fraction of the observed entries is
+        Last, the small sticks (``holdout_points``) are tried without them again,
+        now judged by prediction: this fraction of the observed entries is
         hidden as occlusions hide them (half by a sweeping bar, half at random) and
         predicted from the rest with the structure fixed (as in imputation), and a
         dissolution is kept when it predicts them better. A
@@ -134,6 +134,17 @@ class EMSkeleton(StickEstimator):
         so on motion capture the seed can decide between skeletons; on one camera of
         the CMU take three gave two seeds that had differed the same skeleton, at about
         20-25 % more time on human-sized problems (docs/em.md section 11).
+    holdout_points : int
+        Sticks of at most this many points are always offered to the held-out
+        check; larger ones (up to ``dissolve_points``) only while their fit is
+        suspect (residual variance over 1.25 times the noise's, corrected for the
+        fit's degrees of freedom, as the pair re-split judges). Two points in 2D
+        fit any two trajectories whose distance stays below the stick's 3D length,
+        so only prediction can reject a 2-point stick; three give 6 coordinates a
+        frame for 5 pose parameters, and one that fits them at the noise level is
+        left to the likelihood. The check is biased against exactly those: a true
+        shin or foot of three markers, all hidden by the bar, is predicted better
+        as part of a larger neighbour (docs/em.md sections 6 and 11).
     dissolve_scope : {"all", "leaves"}
         Which small sticks the dissolutions (``dissolve_points`` and the held-out
         check) try. "leaves": only sticks with at most one joint; a stick between
@@ -206,7 +217,8 @@ class EMSkeleton(StickEstimator):
                  reuse_scores: bool = True, tol: float = 1e-4, min_stick_points: int = 3,
                  max_sticks: int | None = None, labels: Any = None, refine_sticks: bool = True,
                  articulated_rounds: int = 4, dissolve_points: int = 3, resplit: bool = True,
-                 holdout: float | None = 0.15, holdout_masks: int = 1, dissolve_scope: str = "all",
+                 holdout: float | None = 0.15, holdout_masks: int = 1, holdout_points: int = 2,
+                 dissolve_scope: str = "all",
                  remerge: bool = True,
                  reattach: bool = True,
                  max_frames: int | None = 400, oversegment: float | None = 3.5, n_jobs: int | None = None,
@@ -237,6 +249,7 @@ class EMSkeleton(StickEstimator):
         self.resplit = resplit
         self.holdout = holdout
         self.holdout_masks = holdout_masks
+        self.holdout_points = holdout_points
         self.dissolve_scope = dissolve_scope
         self.remerge = remerge
         self.reattach = reattach
@@ -260,6 +273,7 @@ class EMSkeleton(StickEstimator):
         check_positive(self.resample_every, "resample_every", integer=True, allow_zero=True)
         check_positive(self.n_polish, "n_polish", integer=True, allow_zero=True)
         check_positive(self.holdout_masks, "holdout_masks", integer=True)
+        check_positive(self.holdout_points, "holdout_points", integer=True)
         if self.dissolve_scope not in ("all", "leaves"):
             raise ValueError(f"dissolve_scope must be 'all' or 'leaves', got {self.dissolve_scope!r}")
         check_positive(self.articulated_rounds, "articulated_rounds", integer=True, allow_zero=True)
@@ -295,7 +309,8 @@ class EMSkeleton(StickEstimator):
                               articulated_rounds=int(self.articulated_rounds),
                               dissolve_points=int(self.dissolve_points), resplit=bool(self.resplit),
                               holdout=None if self.holdout is None else float(self.holdout),
-                              holdout_masks=int(self.holdout_masks), dissolve_scope=str(self.dissolve_scope),
+                              holdout_masks=int(self.holdout_masks), holdout_points=int(self.holdout_points),
+                              dissolve_scope=str(self.dissolve_scope),
                               remerge=bool(self.remerge), reattach=bool(self.reattach),
                               endpoint_init=self.endpoint_init, n_ends=int(self.n_ends))
         priors = Priors(tau_p=float(self.tau_p), alpha0=float(self.alpha0), beta0=float(self.beta0),

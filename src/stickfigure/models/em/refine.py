@@ -464,6 +464,11 @@ def apply_articulated_splits(st: StickState, obs: Observations, priors: Priors,
     return out
 
 
+# A stick whose misfit ratio (misfit_ratios) exceeds this is suspect of holding points of more
+# than one part (right sticks of random figures 0.95-1.34, mostly below 1.15).
+SUSPECT_MISFIT = 1.25
+
+
 # ------------------------------------------------------------- dissolving small sticks
 def dissolve_stick(st: StickState, obs: Observations, priors: Priors, s: int) -> StickState:
     """The model without stick ``s``: its points moved, its joints contracted into one.
@@ -611,8 +616,8 @@ def dissolve_small_sticks(st: StickState, obs: Observations, priors: Priors, set
 
 def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings, rng: np.random.Generator,
                      value: float, max_points: int, fraction: float, trial_iter: int | None = None,
-                     margin: float = 0.1, n_masks: int = 1, scope: str = "all"
-                     ) -> tuple[StickState, float, int, list[list[int]], dict]:
+                     margin: float = 0.1, n_masks: int = 1, scope: str = "all", free_points: int | None = None,
+                     suspect_ratio: float = SUSPECT_MISFIT) -> tuple[StickState, float, int, list[list[int]], dict]:
     """Dissolutions of small sticks judged by how well the model predicts entries it does not see.
 
     A 2-point stick in 2D fits any two trajectories whose distance stays below its
@@ -642,6 +647,18 @@ def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings
     from the same search), at ``n_masks`` times the cost of the predictions.
     With ``scope="leaves"`` only sticks with at most one joint are tried (as in
     :func:`dissolve_small_sticks`).
+    With ``free_points`` (< ``max_points``) a stick of more than ``free_points`` points
+    is tried only while its fit is suspect (:func:`misfit_ratios` above
+    ``suspect_ratio``, as in :func:`resplit_pairs`): a 2-point stick fits any two
+    2D trajectories, so only prediction can judge it, but three points give 6
+    coordinates a frame for 5 pose parameters, and a 3-point stick that fits them at
+    the noise level is left to the likelihood (:func:`dissolve_small_sticks`).
+    Prediction is biased against such sticks (a shin, a foot, the pelvis): all three
+    points hidden by the bar, a larger neighbour predicts them better than the
+    stick's interpolated rotation. The ratio is no test of rigidity for 3 points
+    (true rigid 3-point parts of random figures measured 0.5-7.7), only a sign of
+    it: the sticks that fit well are spared, the rest offered (docs/em.md sections 6
+    and 11).
 
     Returns the state, its objective, the EM sweeps run, the point sets of the
     dissolved sticks, and ``{"fraction", "error_before", "error_after"}`` (RMS per
@@ -676,7 +693,12 @@ def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings
         # spoils the prediction of the sticks jointed to it, which may be right.
         worst = np.bincount(st.labels, weights=err, minlength=st.n_sticks) / np.maximum(
             np.bincount(st.labels, weights=n_hid, minlength=st.n_sticks), 1)
-        nxt = _next_small_stick(st, np.argsort(-worst, kind="stable"), max_points, tried, scope)
+        order = np.argsort(-worst, kind="stable")
+        if free_points is not None and free_points < max_points:
+            fits = (np.bincount(st.labels, minlength=st.n_sticks) <= free_points) | (
+                misfit_ratios(st, obs, priors) > suspect_ratio)
+            order = order[fits[order]]
+        nxt = _next_small_stick(st, order, max_points, tried, scope)
         if nxt is None:
             break
         s, key = nxt
@@ -720,7 +742,7 @@ def misfit_ratios(st: StickState, obs: Observations, priors: Priors) -> np.ndarr
 
 def resplit_pairs(st: StickState, obs: Observations, priors: Priors, settings, rng: np.random.Generator,
                   value: float, criterion: Callable[[StickState, float], float], *,
-                  suspect_ratio: float = 1.25, max_trials: int | None = None, trial_iter: int | None = None
+                  suspect_ratio: float = SUSPECT_MISFIT, max_trials: int | None = None, trial_iter: int | None = None
                   ) -> tuple[StickState, float, int, int]:
     """Moves of groups of points between two jointed sticks: the pair re-split as one stick.
 

@@ -97,6 +97,7 @@ class EMSettings:
     resplit: bool = True
     holdout: float | None = 0.15
     holdout_masks: int = 1
+    holdout_points: int = 2
     dissolve_scope: str = "all"
     remerge: bool = True
     reattach: bool = True
@@ -940,7 +941,8 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
                                                     stages[at].objective,
                                                     settings.dissolve_points, settings.holdout,
                                                     n_masks=settings.holdout_masks,
-                                                    scope=settings.dissolve_scope)
+                                                    scope=settings.dissolve_scope,
+                                                    free_points=settings.holdout_points)
         if gone:
             stages.append(_stage(cur, obs, val, None, n, ref))
             stages[-1].dissolved = gone
