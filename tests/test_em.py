@@ -530,7 +530,7 @@ def test_heldout_check_leaves_rigid_three_point_sticks_to_the_likelihood(monkeyp
     obs, _, _ = normalise(traj.xy)
     ratio = refine.misfit_ratios(st, obs, Priors())
     sticks = [tuple(np.flatnonzero(st.labels == s)) for s in range(st.n_sticks)]
-    rigid = {sticks[s] for s in np.flatnonzero(ratio <= 1.25)}
+    rigid = {sticks[s] for s in np.flatnonzero(ratio <= refine.SUSPECT_MISFIT)}
     assert st.n_sticks == 4 and len(rigid) == 2
     tried = []
     dissolve = refine.dissolve_stick

@@ -120,7 +120,7 @@ class EMSkeleton(StickEstimator):
         improves after EM (moves groups of points that the resampling, with each
         stick's motion fitted to its wrong points too, cannot). False: off.
     holdout : float or None
-        Last, the small sticks (``holdout_points``) are tried without them again,
+        Last, each small stick (``holdout_points``) is tried without it once more,
         now judged by prediction: this fraction of the observed entries is
         hidden as occlusions hide them (half by a sweeping bar, half at random) and
         predicted from the rest with the structure fixed (as in imputation), and a
