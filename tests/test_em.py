@@ -160,6 +160,8 @@ def test_save_load_and_impute_after_loading(tmp_path, chain, fitted):
     ({"n_jobs": 0}, "n_jobs"),
     ({"holdout_masks": 0}, "holdout_masks"),
     ({"holdout_points": 0}, "holdout_points"),
+    ({"split_axes": 0}, "split_axes"),
+    ({"split_axes": 4}, "split_axes"),
     ({"dissolve_scope": "middle"}, "dissolve_scope"),
     ({"labels": [0, 1]}, "labels"),
 ])
@@ -579,6 +581,23 @@ def test_heldout_points_reaches_the_check(chain, monkeypatch, kw, free, largest)
     monkeypatch.setattr(refine, "heldout_dissolve", record)
     EMSkeleton(random_state=0, labels=chain.labels_true, n_iter=30, n_jobs=1, **kw).fit(chain)
     assert seen == [(free, largest)]
+
+
+@pytest.mark.parametrize("kw,axes", [({}, 1), ({"split_axes": 3}, 3)])
+def test_split_axes_reaches_the_articulated_splits(chain, monkeypatch, kw, axes):
+    # The estimator's split_axes is the cut family of the articulated splits.
+    from stickfigure.models.em import refine
+
+    seen = set()
+    candidates = refine.articulated_split_candidates
+
+    def record(*args, **kwargs):
+        seen.add(kwargs["n_axes"])
+        return candidates(*args, **kwargs)
+
+    monkeypatch.setattr(refine, "articulated_split_candidates", record)
+    EMSkeleton(random_state=0, labels=chain.labels_true, n_iter=30, n_jobs=1, **kw).fit(chain)
+    assert seen == {axes}
 
 
 def test_true_joints_are_rigid(chain):

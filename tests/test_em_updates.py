@@ -247,6 +247,28 @@ def test_centroid_initialisation_is_the_papers(scene):
         np.testing.assert_allclose(st.mu_v[E * s], st.mu_e[E * s])
 
 
+def test_major_axis_cuts_divide_a_stick_across_its_length():
+    """n_axes=1: the n-1 threshold cuts along the major axis, each piece on one side of a plane."""
+    from stickfigure.models.em.refine import _axis_bipartitions
+
+    rng = np.random.default_rng(3)
+    local = rng.normal(size=(7, 3)) * [5.0, 1.0, 0.5]  # long along x
+    local = local @ np.linalg.qr(rng.normal(size=(3, 3)))[0]  # in a random orientation
+    c = local - local.mean(axis=0)
+    major = np.linalg.svd(c, full_matrices=False)[2][0]
+    x = c @ major
+    cuts = _axis_bipartitions(local, n_axes=1)
+    assert len(cuts) == 6
+    for second in cuts:
+        assert 0 < second.sum() < 7
+        assert x[second].min() > x[~second].max() or x[second].max() < x[~second].min()
+    # All three axes: the major axis's cuts and others besides, each split once.
+    every = _axis_bipartitions(local, n_axes=3, max_candidates=100)
+    keys = {tuple(np.flatnonzero(m if m[0] else ~m)) for m in every}
+    assert len(keys) == len(every) > 6
+    assert {tuple(np.flatnonzero(m if m[0] else ~m)) for m in cuts} <= keys
+
+
 def test_articulated_split_detects_a_joint_inside_a_stick_and_leaves_rigid_sticks_alone():
     """A stick holding a part and its 2-point child is split (the pieces joined); true sticks are not."""
     from stickfigure.models.em.refine import apply_articulated_splits, articulated_split_candidates

@@ -107,6 +107,13 @@ class EMSkeleton(StickEstimator):
         Rounds of articulated splits after that (a stick that is two parts joined
         at a joint becomes two sticks sharing a vertex, by BIC; docs/em.md
         section 6); 0 turns them off.
+    split_axes : int
+        The cuts those splits (and the pair re-split below) try: planes normal to
+        the major axis of the stick's shape only (1), to its two largest axes (2),
+        or to any of its principal axes (3, the behaviour before). A joint divides a limb across its length;
+        in 2D a cut along it pairs markers from both ends of a limb (thigh and
+        ankle against knee and toe) into two pieces the orthographic model fits
+        as well as the anatomical ones (docs/em.md section 6).
     dissolve_points : int
         After the merge search, every stick of the selected stage with at most this
         many points is tried without it (its points moved to the sticks that explain
@@ -216,7 +223,7 @@ class EMSkeleton(StickEstimator):
                  max_merges: int | None = None, merge_baseline: bool = True, n_polish: int = 3,
                  reuse_scores: bool = True, tol: float = 1e-4, min_stick_points: int = 3,
                  max_sticks: int | None = None, labels: Any = None, refine_sticks: bool = True,
-                 articulated_rounds: int = 4, dissolve_points: int = 3, resplit: bool = True,
+                 articulated_rounds: int = 4, split_axes: int = 1, dissolve_points: int = 3, resplit: bool = True,
                  holdout: float | None = 0.15, holdout_masks: int = 1, holdout_points: int = 2,
                  dissolve_scope: str = "all",
                  remerge: bool = True,
@@ -245,6 +252,7 @@ class EMSkeleton(StickEstimator):
         self.labels = labels
         self.refine_sticks = refine_sticks
         self.articulated_rounds = articulated_rounds
+        self.split_axes = split_axes
         self.dissolve_points = dissolve_points
         self.resplit = resplit
         self.holdout = holdout
@@ -277,6 +285,8 @@ class EMSkeleton(StickEstimator):
         if self.dissolve_scope not in ("all", "leaves"):
             raise ValueError(f"dissolve_scope must be 'all' or 'leaves', got {self.dissolve_scope!r}")
         check_positive(self.articulated_rounds, "articulated_rounds", integer=True, allow_zero=True)
+        if self.split_axes not in (1, 2, 3) or isinstance(self.split_axes, bool):
+            raise ValueError(f"split_axes must be 1, 2 or 3 (principal axes of a 3D shape), got {self.split_axes!r}")
         check_positive(self.dissolve_points, "dissolve_points", integer=True, allow_zero=True)
         check_positive(self.tol, "tol", allow_zero=True)
         for name in ("tau_p", "alpha0", "beta0", "max_precision"):
@@ -306,7 +316,7 @@ class EMSkeleton(StickEstimator):
                               tol=float(self.tol), refine_sticks=bool(self.refine_sticks),
                               merge_baseline=bool(self.merge_baseline), n_polish=int(self.n_polish),
                               reuse_scores=bool(self.reuse_scores),
-                              articulated_rounds=int(self.articulated_rounds),
+                              articulated_rounds=int(self.articulated_rounds), split_axes=int(self.split_axes),
                               dissolve_points=int(self.dissolve_points), resplit=bool(self.resplit),
                               holdout=None if self.holdout is None else float(self.holdout),
                               holdout_masks=int(self.holdout_masks), holdout_points=int(self.holdout_points),

@@ -183,19 +183,21 @@ def refine_labels(st: StickState, obs: Observations, rng: np.random.Generator, *
 
 
 # ----------------------------------------------------------------- articulated splits
-def _axis_bipartitions(local: np.ndarray, max_candidates: int = 24) -> list[np.ndarray]:
-    """Candidate two-way splits of a stick's points: thresholds along each principal axis of its shape.
+def _axis_bipartitions(local: np.ndarray, max_candidates: int = 24, n_axes: int = 3) -> list[np.ndarray]:
+    """Candidate two-way splits of a stick's points: thresholds along principal axes of its shape.
 
     Two parts of a limb held in one stick lie on either side of their joint, so a
-    plane normal to one of the shape's principal axes separates them. Returns
-    boolean masks (True = second piece), each split once, both pieces non-empty.
+    plane normal to one of the shape's principal axes separates them. ``n_axes``:
+    how many axes, the major one first (1: across the stick's length only).
+    Returns boolean masks (True = second piece), each split once, both pieces
+    non-empty.
     """
     n = local.shape[0]
     c = local - local.mean(axis=0)
     _, _, Vt = np.linalg.svd(c, full_matrices=False)
     out: list[np.ndarray] = []
     seen: set[tuple[int, ...]] = set()
-    for axis in Vt:
+    for axis in Vt[:n_axes]:
         order = np.argsort(c @ axis, kind="stable")
         for cut in range(1, n):
             mask = np.zeros(n, bool)
@@ -247,7 +249,8 @@ def _split_block(st: StickState, obs: Observations, s: int, second: np.ndarray,
 
 def articulated_split_candidates(st: StickState, obs: Observations, priors: Priors, *, n_sweeps: int = 40,
                                  n_finalists: int = 5, max_frames: int = 240, skip: set[int] | None = None,
-                                 var: float | None = None, return_gain: bool = False) -> list[tuple]:
+                                 var: float | None = None, return_gain: bool = False,
+                                 n_axes: int = 1) -> list[tuple]:
     """Sticks that are two parts joined by a joint: [(stick, 0/1 labels of its points)].
 
     The split check above needs two rigid halves of at least four points each
@@ -259,11 +262,11 @@ def articulated_split_candidates(st: StickState, obs: Observations, priors: Prio
     rotation is pinned by the joint and its points), and the extra parameters
     are the piece's rotations and the joint, ``k = 3 F + 6``. For every stick
     that fits clearly worse than the noise (as in :func:`split_candidates`), the
-    splits by a plane normal to a principal axis of its shape
-    (:func:`_axis_bipartitions`) are fitted as two sticks sharing a vertex, all
-    candidates of all sticks at once (one batched EM run of ``n_sweeps`` sweeps
-    on the disjoint union, precisions fixed, at most ``max_frames`` evenly spaced
-    frames); the ``n_finalists`` best of each stick are fitted again for
+    splits by a plane normal to the major axis of its shape (``n_axes`` = 1; with
+    3, to any principal axis; :func:`_axis_bipartitions`) are fitted as two
+    sticks sharing a vertex, all candidates of all sticks at once (one batched
+    EM run of ``n_sweeps`` sweeps on the disjoint union, precisions fixed, at
+    most ``max_frames`` evenly spaced frames); the ``n_finalists`` best of each stick are fitted again for
     ``3 n_sweeps`` sweeps, and the best of those is kept when ``(RSS_one - RSS_two) / (2 sigma^2) > k/2 log N``.
     ``var``: the noise variance ``sigma^2`` (default: :func:`noise_variance` of ``st``).
     ``return_gain``: also return each split's gain ``(RSS_one - RSS_two) / (2 sigma^2)``.
@@ -305,7 +308,7 @@ def articulated_split_candidates(st: StickState, obs: Observations, priors: Prio
         rest = rss[s] - (point_rss[idx[worst]] if other[idx[worst]] < own[idx[worst]] else 0.0)
         if rest / (2.0 * var) - dof[s] / 2.0 < penalty_of(idx.size):
             continue
-        for second in _axis_bipartitions(st.local[idx]):
+        for second in _axis_bipartitions(st.local[idx], n_axes=n_axes):
             blocks.append(_split_block(sub, sobs, s, second, priors))
             owners.append((s, second))
     if not blocks:
@@ -751,8 +754,9 @@ def resplit_pairs(st: StickState, obs: Observations, priors: Priors, settings, r
     compromise fitted to its wrong points too, and by single-point moves for
     the same reason) are undone together: the union of their points is fitted
     as one rigid body (SfM and EM), its best split into two pieces sharing a
-    joint is found by :func:`articulated_split_candidates` (planar cuts of its
-    shape, the scene's noise level), and when that split differs from the
+    joint is found by :func:`articulated_split_candidates` (planar cuts across
+    the major axis of its shape, ``settings.split_axes``; the scene's noise
+    level), and when that split differs from the
     current one its points are given to the two sticks (the piece holding more
     of a's points to a), EM re-runs and the change is kept when ``criterion``
     improves. Only pairs with a *suspect* stick are tried (its residual variance,
@@ -791,7 +795,8 @@ def resplit_pairs(st: StickState, obs: Observations, priors: Priors, settings, r
             one = initial_state(sub, np.zeros(U.size, np.int64), 1, priors, rng, n_ends=2)
             for it in range(60):
                 em_sweep(one, sub, priors, global_rotations=it % 10 == 0, use_polar=it == 0)
-            splits = articulated_split_candidates(one, sub, priors, var=var, return_gain=True)
+            splits = articulated_split_candidates(one, sub, priors, var=var, return_gain=True,
+                                                  n_axes=settings.split_axes)
             trials += 1
             if not splits:
                 continue

@@ -93,6 +93,7 @@ class EMSettings:
     endpoint_init: str = "axis"
     n_ends: int = 3
     articulated_rounds: int = 4
+    split_axes: int = 1
     dissolve_points: int = 3
     resplit: bool = True
     holdout: float | None = 0.15
@@ -872,7 +873,7 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
     for _ in range(settings.articulated_rounds if settings.refine_sticks else 0):
         from .refine import apply_articulated_splits, articulated_split_candidates
 
-        splits = articulated_split_candidates(st, obs, priors)
+        splits = articulated_split_candidates(st, obs, priors, n_axes=settings.split_axes)
         if not splits:
             break
         new = apply_articulated_splits(st, obs, priors, splits)
