@@ -856,7 +856,7 @@ def test_cmu_whole_take_at_its_own_rate_gives_a_body_tree(data_dir):
 
 
 @pytest.mark.parametrize("remerge", [True, False])
-def test_search_resumes_after_a_dissolution(monkeypatch, remerge):
+def test_search_resumes_after_a_dissolution(monkeypatch, capsys, remerge):
     # A dissolution kept by the held-out check can leave the trees it linked apart (on the whole
     # CMU take a camera kept 7 trees). Here the check is replaced by one that cuts a true joint
     # of the selected tree (as a dissolved stick's lost joint would): with remerge the merge
@@ -874,8 +874,11 @@ def test_search_resumes_after_a_dissolution(monkeypatch, remerge):
     monkeypatch.setattr(refine, "heldout_dissolve", cut_a_joint)
     traj = sf.synthetic.random_figure(n_sticks=4, frames=80, noise=0.01, seed=2)
     sk = sf.fit(traj, method="em", random_state=0, labels=traj.labels_true, n_iter=80, refine_sticks=False,
-                resplit=False, resample_every=0, reattach=False, remerge=remerge)
+                resplit=False, resample_every=0, reattach=False, remerge=remerge, progress=True)
     stages = sk.info["stages"]
+    # The resumed search's merges are counted on from the first search's (3 merges, then 1).
+    err = capsys.readouterr().err
+    assert "stage 3 of 3" in err and ("stage 4 of 4" in err) == remerge
     cut = [i for i, s in enumerate(stages) if s["heldout"] is not None]
     assert len(cut) == 1 and len(stages[cut[0]]["edges"]) == 2
     truth = {tuple(sorted(e)) for e in traj.edges_true}

@@ -888,7 +888,9 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
     total = st.n_sticks - 1 if settings.max_merges is None else min(settings.max_merges, st.n_sticks - 1)
     if progress:
         progress(0, total, val)
+    done = 0  # merges so far, the resumed search's included (progress: stage k of n)
     for k, (stage, cur) in enumerate(greedy_merges(st, obs, priors, settings, rng, ref, settings.max_merges), 1):
+        done = k
         st = cur
         stages.append(stage)
         for crit in ("objective", "bic"):
@@ -955,6 +957,10 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
                     stages.append(stage)
                     if getattr(stage, selection) > top[0]:
                         top = (getattr(stage, selection), len(stages) - 1, s.copy())
+                    if progress:
+                        done += 1
+                        comp_s, _ = components(s)
+                        progress(done, done + int(comp_s.max()), stage.objective)
                 best[selection] = top
     if settings.reattach:
         # Sub-tree moves (tree.py): the greedy search never undoes a merge, and a contracted
