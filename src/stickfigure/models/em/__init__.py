@@ -110,10 +110,11 @@ class EMSkeleton(StickEstimator):
     split_axes : int
         The cuts those splits (and the pair re-split below) try: planes normal to
         the major axis of the stick's shape only (1), to its two largest axes (2),
-        or to any of its principal axes (3, the behaviour before). A joint divides a limb across its length;
-        in 2D a cut along it pairs markers from both ends of a limb (thigh and
-        ankle against knee and toe) into two pieces the orthographic model fits
-        as well as the anatomical ones (docs/em.md section 6).
+        or to any of its principal axes (3, the behaviour before). A joint
+        divides a limb across its length; in 2D a cut along it pairs markers from
+        both ends of a limb (thigh and ankle against knee and toe) into two pieces
+        the orthographic model fits as well as the anatomical ones (docs/em.md
+        section 6).
     dissolve_points : int
         After the merge search, every stick of the selected stage with at most this
         many points is tried without it (its points moved to the sticks that explain

@@ -266,8 +266,8 @@ def articulated_split_candidates(st: StickState, obs: Observations, priors: Prio
     3, to any principal axis; :func:`_axis_bipartitions`) are fitted as two
     sticks sharing a vertex, all candidates of all sticks at once (one batched
     EM run of ``n_sweeps`` sweeps on the disjoint union, precisions fixed, at
-    most ``max_frames`` evenly spaced frames); the ``n_finalists`` best of each stick are fitted again for
-    ``3 n_sweeps`` sweeps, and the best of those is kept when ``(RSS_one - RSS_two) / (2 sigma^2) > k/2 log N``.
+    most ``max_frames`` evenly spaced frames); the ``n_finalists`` best of each
+    stick are fitted again for ``3 n_sweeps`` sweeps, and the best of those is kept when ``(RSS_one - RSS_two) / (2 sigma^2) > k/2 log N``.
     ``var``: the noise variance ``sigma^2`` (default: :func:`noise_variance` of ``st``).
     ``return_gain``: also return each split's gain ``(RSS_one - RSS_two) / (2 sigma^2)``.
     """

@@ -889,17 +889,21 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
     if progress:
         progress(0, total, val)
     done = 0  # merges so far, the resumed search's included (progress: stage k of n)
-    for k, (stage, cur) in enumerate(greedy_merges(st, obs, priors, settings, rng, ref, settings.max_merges), 1):
-        done = k
+
+    def report(k: int, state: StickState, value: float) -> None:
+        # Stage k of (k + the merges still possible: trees left - 1).
+        if progress:
+            comp_s, _ = components(state)
+            progress(k, k + int(comp_s.max()), value)
+
+    for done, (stage, cur) in enumerate(greedy_merges(st, obs, priors, settings, rng, ref, settings.max_merges), 1):
         st = cur
         stages.append(stage)
         for crit in ("objective", "bic"):
             v = getattr(stage, crit)
             if v > best[crit][0]:
                 best[crit] = (v, len(stages) - 1, st.copy())
-        if progress:
-            comp_s, _ = components(st)
-            progress(k, k + int(comp_s.max()), stage.objective)
+        report(done, st, stage.objective)
     if selection not in ("objective", "bic"):
         raise ValueError(f"selection must be 'objective' or 'bic', got {selection!r}")
     if settings.dissolve_points or settings.resplit:
@@ -957,10 +961,8 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
                     stages.append(stage)
                     if getattr(stage, selection) > top[0]:
                         top = (getattr(stage, selection), len(stages) - 1, s.copy())
-                    if progress:
-                        done += 1
-                        comp_s, _ = components(s)
-                        progress(done, done + int(comp_s.max()), stage.objective)
+                    done += 1
+                    report(done, s, stage.objective)
                 best[selection] = top
     if settings.reattach:
         # Sub-tree moves (tree.py): the greedy search never undoes a merge, and a contracted
