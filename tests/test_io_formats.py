@@ -85,7 +85,7 @@ def test_sleap_clip(data_dir):
 
     path = data_dir / "video" / "clip.slp"
     t = load(path)
-    assert t.shape == (26, 1500, 2) and t.meta["tracks"] == ["female", "male"]
+    assert t.shape == (26, 1500, 2) and t.meta["tracks"] == ["female", "male"] and t.meta["n_figures"] == 2
     assert t.names[0] == "female/head" and t.names[13] == "male/head" and len(t.meta["nodes"]) == 13
     assert t.labels_true.tolist() == list(range(26)) and t.part_names == t.names
     assert len(t.edges_true) == 24 and (1, 0) in t.edges_true and (14, 13) in t.edges_true  # thorax-head

@@ -63,6 +63,7 @@ def test_cmu_c3d(data_dir):
     t = load(data_dir / "mocap" / "85_02.c3d")
     assert t.shape == (41, 810, 3) and t.frame_rate == 120 and t.up_axis == 2
     assert t.meta["units"] == "mm" and t.meta["source"].endswith("85_02.c3d")
+    assert t.meta["n_figures"] == 1  # one subject (prefix "Male:")
     assert all(":" not in n for n in t.names) and "LFHD" in t.names
     assert not t.meta["unlabelled"].any() and (t.labels_true >= 0).all()
     assert t.part_names == list(SEGMENTS) and len(t.edges_true) == 14
@@ -101,6 +102,7 @@ def test_hdm05_c3d_unlabelled_markers_are_flagged(data_dir):
     assert t.meta["unlabelled"].tolist() == [True] * 3 + [False] * 41
     assert t.names[:4] == ["*0", "*1", "*2", "LFHD"]
     assert (t.labels_true[:3] == -1).all() and (t.labels_true[3:] >= 0).all()
+    assert t.meta["n_figures"] == 1  # the labelled markers name one subject
     # slicing keeps the per-point flags aligned
     s = t.slice(points=[0, 5])
     assert s.meta["unlabelled"].tolist() == [True, False]
@@ -144,6 +146,9 @@ def test_c3d_without_prefix_with_gaps_analogs_and_other_rate(tmp_path):
     assert load(path, zeros_as_missing=False).xy[2, 10].tolist() == [0, 0, 0]
     assert load(path, up_axis=2).up_axis == 2
     assert load(path, drop_unobserved=False).n_points == 5
+    assert t.meta["n_figures"] == 1  # labelled, no subject prefix: one figure
+    none = load(_write_c3d(tmp_path / "u.c3d", ["*0", "*1", "*2"], pts[:3]))
+    assert none.meta["n_figures"] is None  # nothing labelled: the figures are unknown
 
 
 def test_c3d_two_subjects_keep_prefixes(tmp_path):
@@ -152,6 +157,7 @@ def test_c3d_two_subjects_keep_prefixes(tmp_path):
     t = load(path)
     assert t.names == ["A:LFHD", "A:C7", "B:LFHD", "B:C7"] and t.meta["subjects"] == ["A", "B"]
     assert t.part_names == ["A:thorax", "A:head", "B:thorax", "B:head"]
+    assert t.meta["n_figures"] == 2
 
 
 # ---------------------------------------------------------------------- BVH
@@ -263,6 +269,7 @@ def test_bvh_forward_kinematics_matches_independent_computation(tmp_path):
     for i, n in enumerate(t.names):
         np.testing.assert_allclose(t.xy[i], expected[n], atol=1e-9, err_msg=n)
     assert t.frame_rate == pytest.approx(50) and t.up_axis == 1 and t.meta["units"] is None
+    assert t.meta["n_figures"] == 1  # one ROOT
     # Parts are the joints' frames; a joint point belongs to its parent's part, except the
     # root and C, which slides (position channels) and is fixed only in its own frame.
     label = dict(zip(t.names, (t.part_names[k] for k in t.labels_true)))
@@ -443,6 +450,7 @@ def test_acclaim_skeleton_lookup(tmp_path):
     (tmp_path / "hdm" / "HDM_bd.asf").write_text((tmp_path / "hdm" / "HDM_dg.asf").read_text())
     t = load(amc)
     assert t.meta["skeleton"].endswith("HDM_dg.asf") and t.frame_rate == 120
+    assert t.meta["n_figures"] == 1
     assert load(amc, frame_rate=30).frame_rate == 30
     with pytest.raises(ValueError, match=r"ASF skeleton without motion.*HDM_dg_06-03_03_120\.amc"):
         load(tmp_path / "hdm" / "HDM_dg.asf")
@@ -501,7 +509,7 @@ def test_mocaptoolbox_takes(data_dir):
     assert first.meta["take"] == "dance1" and set(first.meta["takes"]) >= {"walk1", "walk2", "dance1", "dance2"}
     walk = load(path, take="walk1")
     assert walk.shape == (28, 351, 3) and walk.frame_rate == 60 and walk.up_axis == 2
-    assert np.isnan(walk.xy).any() and walk.meta["units"] == "mm"
+    assert np.isnan(walk.xy).any() and walk.meta["units"] == "mm" and walk.meta["n_figures"] == 1
     assert walk.part_names == list(SEGMENTS) and (walk.labels_true >= 0).all() and len(walk.edges_true) == 14
     assert walk.joints_true.shape == (14, 351, 3)
     assert len(walk.meta["joint_names"]) == 20 and len(walk.meta["joint_edges"]) == 19

@@ -94,6 +94,9 @@ class Trajectories:
     meta : dict
         Anything else the source provides (JSON-serialisable values or arrays
         of shape (P,)), e.g. ``meta["unlabelled"]`` for C3D markers without a label.
+        ``meta["n_figures"]`` (int), where the source says how many separate figures
+        the points belong to (one subject of a motion-capture take), is read by the
+        ``em`` method's ``max_trees="auto"``; set it for data of your own.
     allow_unobserved : bool
         Accept points that are never observed (useful for held-out test frames);
         fitting a model still rejects them.

@@ -20,7 +20,11 @@ extension      what                                             options
 ``save(traj, path)`` writes ``.csv`` or ``.npz``. Every loaded
 :class:`~stickfigure.trajectories.Trajectories` records ``meta["source"]`` (the
 path), ``meta["format"]`` and ``meta["units"]`` (None when the file does not
-say). Bad files raise a one-line :class:`ValueError` that names the file; a
+say). Formats that describe whole figures also record ``meta["n_figures"]``: 1
+for ASF/AMC and the MoCap Toolbox, the ROOT hierarchies of a BVH, the subjects
+of a C3D (1 when its labels carry no subject prefix; None when no marker is
+labelled), the tracks of a SLEAP file. ``EMSkeleton(max_trees="auto")`` joins
+a learned forest down to that many trees. Bad files raise a one-line :class:`ValueError` that names the file; a
 missing file raises :class:`FileNotFoundError`; an unknown option raises
 :class:`TypeError` listing the reader's options. See ``docs/formats.md``.
 """

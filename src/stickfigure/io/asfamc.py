@@ -516,5 +516,6 @@ def load_amc(
             "angle_unit": motion.angle_unit or skeleton.angle_unit,
             "frame_rate_source": rate_source,
             "first_frame": int(motion.frame_numbers[0]),
+            "n_figures": 1,  # an ASF skeleton is one tree (EMSkeleton(max_trees="auto") reads it)
         },
     )

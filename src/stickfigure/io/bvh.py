@@ -394,5 +394,7 @@ def load_bvh(
         up_axis=1,
         frame_rate=1.0 / bvh.frame_time,
         meta={"source": str(path), "format": "bvh", "units": units, "frame_time": bvh.frame_time,
-              "position_mode": position_mode},
+              "position_mode": position_mode,
+              # one figure per ROOT hierarchy (EMSkeleton(max_trees="auto") reads it)
+              "n_figures": sum(1 for n in bvh.nodes if n.parent < 0)},
     )

@@ -9,6 +9,8 @@
   (``drop_unobserved``) and listed in ``meta["dropped_points"]``.
 * Unlabelled markers (Vicon writes ``*12``) are kept, flagged in
   ``meta["unlabelled"]`` (bool, shape (P,)) and get ``labels_true = -1``.
+* ``meta["n_figures"]``: the subjects named by prefixes, 1 when the labels carry
+  none, None when no marker is labelled.
 * Frame rate: ``POINT:RATE`` (else the header's). Units: ``POINT:UNITS``
   (``meta["units"]``, usually ``"mm"``).
 * ``up_axis``: from ``POINT:Y_SCREEN`` (the axis that points up on screen, e.g.
@@ -271,6 +273,9 @@ def load_c3d(
             "frame_offset": int(header["first_frame"]),  # 0-based index of row 0 in the capture
             "dropped_points": dropped,
             "subjects": subjects,
+            # Labelled markers of named subjects (one when the labels carry no subject prefix);
+            # None when no marker is labelled. EMSkeleton(max_trees="auto") reads it.
+            "n_figures": max(len(subjects), 1) if not np.all(unlabelled) else None,
             "joint_names": joint_names,
             "up_axis_source": axis_source if up_axis is None else "argument",
             "analog_channels": n_analog,

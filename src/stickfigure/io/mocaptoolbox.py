@@ -193,7 +193,7 @@ def load_mocaptoolbox(path: str | os.PathLike, *, take: str | None = None, drop_
             joints_true = np.stack(rows)
     axis = up_axis if up_axis is not None else guess_up_axis(xyz, labels_true, part_names)
     meta.update({"source": str(path), "format": "mocaptoolbox", "take": take, "takes": takes, "units": "mm",
-                 "dropped_points": dropped, "edge_joints": joint_names,
+                 "dropped_points": dropped, "edge_joints": joint_names, "n_figures": 1,
                  "up_axis_source": "argument" if up_axis is not None else
                  ("guessed (head above feet)" if axis is not None else "default (z up)")})
     return Trajectories(
