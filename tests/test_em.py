@@ -164,6 +164,9 @@ def test_save_load_and_impute_after_loading(tmp_path, chain, fitted):
     ({"holdout_points": 0}, "holdout_points"),
     ({"split_axes": 0}, "split_axes"),
     ({"split_axes": 4}, "split_axes"),
+    ({"max_trees": 0}, "max_trees"),
+    ({"max_trees": "one"}, "max_trees"),
+    ({"max_trees": True}, "max_trees"),
     ({"dissolve_scope": "middle"}, "dissolve_scope"),
     ({"labels": [0, 1]}, "labels"),
 ])
@@ -290,6 +293,22 @@ def test_independent_bodies_stay_apart():
     assert len(stages) == 2 and len(stages[1]["edges"]) == 1
     assert sk.n_sticks == 2 and sk.edges == [] and sk.info["selected_stage"] == 0
     assert stages[1]["bic"] < stages[0]["bic"]
+    assert sk.info["settings"]["max_trees"] is None  # "auto": the synthetic scene names no figure count
+
+
+def test_max_trees_joins_a_forest_whatever_the_criterion():
+    # The same two bodies said to be one figure (max_trees=1, or the format's n_figures with the
+    # default "auto"): the selected forest is joined by its best merge, recorded as "joined".
+    traj = sf.synthetic.rigid_bodies(n_bodies=2, frames=100, seed=0)
+    sk = sf.fit(traj, method="em", random_state=0, max_trees=1)
+    assert sk.edges == [(0, 1)] and sk.info["stages"][-1]["joined"] == [[0, 1]]
+    assert sk.info["selected_stage"] == len(sk.info["stages"]) - 1
+    traj.meta["n_figures"] = 1
+    auto = sf.fit(traj, method="em", random_state=0)
+    assert auto.edges == [(0, 1)] and auto.info["settings"]["max_trees"] == 1
+    traj.meta["n_figures"] = 2
+    assert sf.fit(traj, method="em", random_state=0).edges == []
+    assert sf.fit(traj, method="em", random_state=0, max_trees=None, n_iter=20).info["settings"]["max_trees"] is None
 
 
 def _benchmark_figure(seed: int) -> sf.Trajectories:

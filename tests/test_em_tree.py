@@ -9,7 +9,8 @@ import stickfigure as sf
 from stickfigure.models.em import fit_stages
 from stickfigure.models.em.model import Priors, normalise, objective
 from stickfigure.models.em.structure import EMSettings, apply_merge, bic, merge_candidates, run_em, stick_edges
-from stickfigure.models.em.tree import cut_proposals, detach_endpoint, reattach_subtrees
+from stickfigure.models.em.structure import components
+from stickfigure.models.em.tree import cut_proposals, detach_endpoint, join_trees, reattach_subtrees
 
 
 @pytest.fixture(scope="module")
@@ -97,3 +98,24 @@ def test_reattach_is_a_parameter(star):
     labels = traj.labels_true
     sk = sf.fit(traj, method="em", random_state=0, labels=labels, n_iter=60, reattach=False)
     assert all(s["reattached"] == [] for s in sk.info["stages"])
+
+
+def test_join_trees_rejoins_a_cut_leaf_where_it_belongs(star):
+    # Known answer: the leaf's joint cut leaves a forest of two trees; joined down to one, the
+    # leaf goes back to its true parent (the best-scoring merge between the trees).
+    traj, st, obs, settings, priors = star
+    edges, verts = stick_edges(st)
+    deg = np.bincount(np.ravel(edges), minlength=st.n_sticks)
+    leaf = int(np.flatnonzero(deg == 1)[0])
+    E = st.ends_per_stick
+    j = verts[[i for i, e in enumerate(edges) if leaf in e][0]]
+    e = int([x for x in np.flatnonzero(st.vertex_of == j) if x // E == leaf][0])
+    cut = detach_endpoint(st, e, priors)
+    cut, value, _ = run_em(cut, obs, priors, settings, 50, np.random.default_rng(1))
+    assert components(cut)[0].max() == 1 and len(stick_edges(cut)[0]) == 1
+    same, v2, n0, none = join_trees(cut.copy(), obs, priors, settings, np.random.default_rng(2), value, 2)
+    assert none == [] and n0 == 0 and v2 == value  # already within max_trees: nothing to do
+    joined, _, sweeps, done = join_trees(cut, obs, priors, settings, np.random.default_rng(2), value, 1)
+    assert len(done) == 1 and leaf in done[0] and sweeps > 0
+    assert components(joined)[0].max() == 0
+    assert _norm(stick_edges(joined)[0]) == _norm(edges)

@@ -19,7 +19,7 @@ docs/em.md derives every update and documents the defaults.
 from __future__ import annotations
 
 import contextlib
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from typing import Any
 
 import numpy as np
@@ -180,6 +180,18 @@ class EMSkeleton(StickEstimator):
         as in the search, and the best one is kept when it is not the old link and
         the selection criterion improves after EM (the greedy search never undoes a
         merge; docs/em.md section 6). False: off.
+    max_trees : int, "auto" or None
+        The most separate figures (trees) the skeleton may have. The search selects
+        a forest where no joint between its trees pays by the criterion, which is
+        right for independent objects; on a figure known to be one piece a forest
+        means a segment the sticks do not resolve (a thigh marker on the pelvis
+        stick), and the part left apart is still jointed to the body. With a
+        number, a forest of more trees is joined by the best-scoring merges
+        between its trees, before the sub-tree moves (docs/em.md section 6).
+        "auto" (default): the number the data's format records
+        (``traj.meta["n_figures"]``: 1 for a motion-capture take of one subject,
+        the tracks of a SLEAP file; :mod:`stickfigure.io`), else None. None: the
+        forest as selected.
     max_frames : int, optional
         Run the structure search (EM, stick checks, merges) on at most this many
         evenly spaced frames, then re-fit the selected structure on all frames
@@ -228,7 +240,7 @@ class EMSkeleton(StickEstimator):
                  holdout: float | None = 0.15, holdout_masks: int = 1, holdout_points: int = 2,
                  dissolve_scope: str = "all",
                  remerge: bool = True,
-                 reattach: bool = True,
+                 reattach: bool = True, max_trees: int | str | None = "auto",
                  max_frames: int | None = 400, oversegment: float | None = 3.5, n_jobs: int | None = None,
                  tau_p: float = 25.0,
                  alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e6, impute_iter: int = 100,
@@ -262,6 +274,7 @@ class EMSkeleton(StickEstimator):
         self.dissolve_scope = dissolve_scope
         self.remerge = remerge
         self.reattach = reattach
+        self.max_trees = max_trees
         self.max_frames = max_frames
         self.oversegment = oversegment
         self.n_jobs = n_jobs
@@ -298,6 +311,10 @@ class EMSkeleton(StickEstimator):
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(map(repr, allowed))}, got {getattr(self, name)!r}")
+        if isinstance(self.max_trees, (str, bool)) and self.max_trees != "auto":
+            raise ValueError(f"max_trees must be a positive integer, 'auto' or None, got {self.max_trees!r}")
+        if self.max_trees is not None and self.max_trees != "auto":
+            check_positive(self.max_trees, "max_trees", integer=True)
         for name in ("max_candidates", "max_merges", "max_sticks", "max_frames", "n_jobs"):
             v = getattr(self, name)
             if v is not None:
@@ -323,6 +340,7 @@ class EMSkeleton(StickEstimator):
                               holdout_masks=int(self.holdout_masks), holdout_points=int(self.holdout_points),
                               dissolve_scope=str(self.dissolve_scope),
                               remerge=bool(self.remerge), reattach=bool(self.reattach),
+                              max_trees=None if self.max_trees in (None, "auto") else int(self.max_trees),
                               endpoint_init=self.endpoint_init, n_ends=int(self.n_ends))
         priors = Priors(tau_p=float(self.tau_p), alpha0=float(self.alpha0), beta0=float(self.beta0),
                         max_precision=float(self.max_precision))
@@ -334,6 +352,10 @@ class EMSkeleton(StickEstimator):
             raise ValueError(f"em models 2D observations, got {traj.n_dims}D data; project 3D data first "
                              "(traj.project())")
         settings, priors = self._settings()
+        if isinstance(self.max_trees, str):  # "auto": the figures the data's format names, if any
+            n = traj.meta.get("n_figures")
+            if isinstance(n, (int, np.integer)) and not isinstance(n, bool) and n >= 1:
+                settings = replace(settings, max_trees=int(n))
         stages, selected, norm, info0 = fit_stages(traj, settings, priors, rng, labels=self.labels,
                                                    max_sticks=self.max_sticks, selection=self.selection,
                                                    endpoint_init=self.endpoint_init, n_ends=int(self.n_ends),
@@ -581,6 +603,7 @@ def _skeleton(stages: list[Stage], selected: int, norm: tuple[np.ndarray, float]
             "labels": s.labels.tolist(), "vertex_of": s.vertex_of.tolist(), "edges": [list(e) for e in s.edges],
             "merged": None if s.merged is None else list(s.merged), "n_sweeps": s.n_sweeps,
             "dissolved": s.dissolved, "moved": s.moved, "heldout": s.heldout, "reattached": s.reattached,
+            "joined": s.joined,
             "ends_xy": (s.ends_xy * scale + centre).tolist(), "joints_xy": (s.joints_xy * scale + centre).tolist(),
         } for s in stages],
         "objective_stage": int(np.argmax([s.objective for s in stages])),

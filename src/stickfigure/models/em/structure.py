@@ -102,6 +102,7 @@ class EMSettings:
     dissolve_scope: str = "all"
     remerge: bool = True
     reattach: bool = True
+    max_trees: int | None = None
 
 
 def child_rng(rng: np.random.Generator) -> np.random.Generator:
@@ -784,6 +785,7 @@ class Stage:
     heldout: dict | None = None  # the held-out check's errors (refine.heldout_dissolve)
     search_bic: float | None = None  # the search's best BIC, before the held-out check (compares starts)
     reattached: list = field(default_factory=list)  # sub-tree moves kept (tree.reattach_subtrees)
+    joined: list = field(default_factory=list)  # stick pairs joined to reach max_trees (tree.join_trees)
 
 
 def _stage(st: StickState, obs: Observations, value: float, merged: tuple[int, int] | None, sweeps: int,
@@ -964,6 +966,20 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
                     done += 1
                     report(done, s, stage.objective)
                 best[selection] = top
+    if settings.max_trees is not None:
+        # A figure known to be one piece (max_trees=1): the forest's trees are joined by the
+        # best merges between them, whatever the criterion says (tree.join_trees). Before the
+        # sub-tree moves, which can re-place a join made at the wrong stick.
+        from .tree import join_trees
+
+        _, at, cur = best[selection]
+        if int(components(cur)[0].max()) + 1 > settings.max_trees:
+            cur, val, n, joined = join_trees(cur.copy(), obs, priors, settings, rng, stages[at].objective,
+                                             settings.max_trees)
+            if joined:
+                stages.append(_stage(cur, obs, val, None, n, ref))
+                stages[-1].joined = joined
+                best[selection] = (getattr(stages[-1], selection), len(stages) - 1, cur.copy())
     if settings.reattach:
         # Sub-tree moves (tree.py): the greedy search never undoes a merge, and a contracted
         # stick links its two neighbours whatever they are; a part hanging from the wrong stick
