@@ -303,6 +303,9 @@ def test_max_trees_joins_a_forest_whatever_the_criterion():
     sk = sf.fit(traj, method="em", random_state=0, max_trees=1)
     assert sk.edges == [(0, 1)] and sk.info["stages"][-1]["joined"] == [[0, 1]]
     assert sk.info["selected_stage"] == len(sk.info["stages"]) - 1
+    from stickfigure.plot.em import stage_kind
+
+    assert stage_kind(sk.info["stages"][-1], len(sk.info["stages"]) - 1) == "trees joined"
     traj.meta["n_figures"] = 1
     auto = sf.fit(traj, method="em", random_state=0)
     assert auto.edges == [(0, 1)] and auto.info["settings"]["max_trees"] == 1
