@@ -417,7 +417,10 @@ def low_rank_complete(xy: Any, rank: int, **kwargs: Any) -> np.ndarray:
     rank : int
         Rank of the centred measurement matrix (e.g. 3 per rigid body).
     **kwargs
-        Passed to :func:`affine_factorization`.
+        Passed to :func:`affine_factorization`. ``random_state`` (the jitter of its
+        start) defaults to 0 here, so a completion is the same on every call: the
+        affinities and segmentations built on it (called without a generator) must
+        not change from run to run.
 
     Returns
     -------
@@ -428,6 +431,7 @@ def low_rank_complete(xy: Any, rank: int, **kwargs: Any) -> np.ndarray:
     obs = ~np.isnan(xy[..., 0])
     if obs.all():
         return xy.copy()
+    kwargs.setdefault("random_state", 0)
     fac = affine_factorization(xy, rank, **kwargs)
     out = fac.predict()
     out[obs] = xy[obs]
