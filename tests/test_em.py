@@ -149,6 +149,25 @@ def test_save_load_and_impute_after_loading(tmp_path, chain, fitted):
     np.testing.assert_allclose(back.impute(occluded), fitted.skeleton_.impute(occluded))
 
 
+def test_imputation_options_are_parameters_and_survive_saving(tmp_path, chain, fitted):
+    # The joint motion-endpoint block and the rotation prior (docs/em.md section 8) are read
+    # from the saved parameters; each setting predicts the hidden entries near the truth.
+    path = fitted.skeleton_.save(tmp_path / "opts.json")
+    occluded, hidden = sf.synthetic.occlude(chain, seed=3)
+    filled = {}
+    for joint in (True, False):
+        for prior in (True, False):
+            sk = sf.Skeleton.load(path)
+            sk.params.update(impute_joint_ends=joint, impute_rotation_prior=prior)
+            filled[joint, prior] = f = sk.impute(occluded)
+            assert np.sqrt(np.mean(np.sum((f[hidden] - chain.xy[hidden]) ** 2, axis=-1))) < 0.05, (joint, prior)
+    np.testing.assert_allclose(filled[True, True], fitted.skeleton_.impute(occluded))  # the defaults
+    assert not np.allclose(filled[True, True], filled[False, False])
+    old = sf.Skeleton.load(path)  # a model saved before the options existed: their defaults
+    del old.params["impute_joint_ends"], old.params["impute_rotation_prior"]
+    np.testing.assert_allclose(old.impute(occluded), filled[True, True])
+
+
 @pytest.mark.parametrize("bad,match", [
     ({"selection": "aic"}, "selection"),
     ({"merge_scope": "global"}, "merge_scope"),
@@ -167,6 +186,8 @@ def test_save_load_and_impute_after_loading(tmp_path, chain, fitted):
     ({"max_trees": 0}, "max_trees"),
     ({"max_trees": "one"}, "max_trees"),
     ({"max_trees": True}, "max_trees"),
+    ({"impute_joint_ends": "yes"}, "impute_joint_ends"),
+    ({"impute_rotation_prior": 1}, "impute_rotation_prior"),
     ({"dissolve_scope": "middle"}, "dissolve_scope"),
     ({"labels": [0, 1]}, "labels"),
 ])

@@ -39,6 +39,7 @@ STEPS = [
     ("phi", lambda st, obs, pri: U.update_phi(st, pri)),
     ("motions", lambda st, obs, pri: U.update_motions(st, obs)),
     ("motions-global", lambda st, obs, pri: U.update_motions(st, obs, global_search=True)),
+    ("motions-joint", lambda st, obs, pri: U.update_motions(st, obs, collapse=True)),
     ("local", lambda st, obs, pri: U.update_local(st, obs, pri)),
     ("ends", lambda st, obs, pri: U.update_ends(st, pri)),
     ("precisions", lambda st, obs, pri: U.update_precisions(st, obs, pri)),
@@ -94,6 +95,103 @@ def test_translation_update_is_the_derived_closed_form(scene):
         num += st.tau_m * np.sum(st.mu_e[ends] - Rk, axis=0)
         den = st.tau_w * m.sum(axis=0) + E * st.tau_m
         np.testing.assert_allclose(st.trans[s], num / den[:, None], rtol=1e-9, atol=1e-12)
+
+
+def test_joint_motion_and_endpoint_step_is_the_derived_closed_form(scene):
+    # collapse=True: for fixed vertices, motion and endpoint means are optimised together. The
+    # endpoints' terms become tau_m a / (tau_m + a) |M k - mu(v)|^2, so t is the weighted
+    # centroid formula with those weights and vertex targets, and mu(e) is then its own optimum.
+    st, obs, pri = _state(scene)
+    U.update_vertices(st)
+    U.update_motions(st, obs, collapse=True)
+    E = st.ends_per_stick
+    a = (st.alpha / st.beta)[st.vertex_of]
+    wm = st.tau_m * a / (st.tau_m + a)
+    for s in range(st.n_sticks):
+        pts = np.flatnonzero(st.labels == s)
+        m = obs.mask[pts]
+        Rl = np.einsum("fdk,pk->pfd", st.rot[s], st.local[pts])
+        num = st.tau_w * np.einsum("pf,pfd->fd", m, obs.w[pts] - Rl)
+        ends = np.arange(E * s, E * (s + 1))
+        Rk = np.einsum("fdk,ik->ifd", st.rot[s], st.ends[ends])
+        num += np.einsum("i,ifd->fd", wm[ends], st.mu_v[st.vertex_of[ends]] - Rk)
+        den = st.tau_w * m.sum(axis=0) + wm[ends].sum()
+        np.testing.assert_allclose(st.trans[s], num / den[:, None], rtol=1e-9, atol=1e-12)
+    mu_e = st.mu_e.copy()
+    U.update_endpoints(st)
+    np.testing.assert_allclose(st.mu_e, mu_e, rtol=1e-12, atol=1e-12)
+
+
+def test_joint_step_reaches_the_data_where_endpoints_anchor_the_paper_order(scene):
+    # One stick turned away from its fitted pose, its endpoints pushed far from its points
+    # (a loose endpoint can drift metres away in training): the paper's order moves the
+    # rotation a small part of the way per sweep, the joint step gets there.
+    _, obs = scene
+    st, _, pri = _state(scene)
+    settings = S.EMSettings(n_iter=60, resample_every=0)
+    st, _, _ = S.run_em(st, obs, pri, settings, 60, np.random.default_rng(0), resample=False)
+    E = st.ends_per_stick
+    lone = st.vertex_counts()[st.vertex_of] == 1
+    s = int(np.argmax(lone.reshape(-1, E).sum(axis=1)))
+    ends = np.arange(E * s, E * (s + 1))
+    far = ends[lone[ends]]
+    assert far.size  # the premise: a stick with an endpoint on no joint
+    st.ends[far] *= 8.0
+    # A loose endpoint far out moves jerkily, and its vertex's precision phi falls far below
+    # tau_m (HDM05: phi 2 and 31 against tau_m 1.1e6 on a chest stick; docs/em.md section 8).
+    v = st.vertex_of[far]
+    st.beta[v] = st.alpha[v] / (1e-3 * st.tau_w)
+    U.update_endpoints(st)
+    U.update_vertices(st)
+    U.update_endpoints(st)
+    truth = st.rot[s].copy()
+    turn = Rotation.from_rotvec([0.0, 0.0, 0.6]).as_matrix()
+    results = {}
+    for collapse in (False, True):
+        u = st.copy()
+        u.rot[s] = u.rot[s] @ turn
+        U.update_endpoints(u)
+        for _ in range(10):
+            U.update_endpoints(u)
+            U.update_vertices(u)
+            U.update_motions(u, obs, collapse=collapse, hold=None, newton=True)
+        results[collapse] = float(np.max(np.abs(u.rot[s] - truth)))
+    assert results[True] < 0.05 < results[False]
+
+
+def test_rotation_concentration_matches_a_steady_turn():
+    # R_f turns by theta per frame about the viewing axis: D - tr(R_f R_f-1^T) = 2 - 2 cos theta.
+    from stickfigure.models.em.impute import rotation_concentration
+
+    theta = 0.05
+    R = Rotation.from_rotvec(np.outer(np.arange(30) * theta, [0.0, 0.0, 1.0])).as_matrix()[:, :2, :]
+    kappa = rotation_concentration(np.stack([R, R[:1].repeat(30, axis=0)]))
+    assert kappa[0] == pytest.approx(1.0 / (2.0 - 2.0 * np.cos(theta)))
+    assert kappa[1] > 1e10  # a still stick: a stiff prior
+    assert rotation_concentration(R[None, :1]).tolist() == [0.0]
+    with pytest.raises(ValueError, match=r"\(S, F, D, 3\)"):
+        rotation_concentration(R)
+
+
+def test_rotation_prior_is_the_map_given_the_neighbours(scene):
+    # With kappa, the motion step's energy gains -2 kappa tr(R (R_f-1 + R_f+1)^T): a frame
+    # whose data are weighted down to nothing takes the mean of its neighbours' rotations.
+    st, obs, pri = _state(scene)
+    U.update_endpoints(st)
+    f = 20
+    weak = obs.mask.copy()
+    weak[:, f] = 0.0  # no point seen in frame f
+    w_obs = type(obs)(obs.w * weak[..., None], weak)
+    u = st.copy()
+    u.ends[:] = 0.0  # endpoints at the sticks' origins carry no rotation either
+    u.tau_m = 1e-9
+    U.update_endpoints(u)
+    kappa = np.full(u.n_sticks, 5.0)
+    mean = u.rot[:, f - 1] + u.rot[:, f + 1]
+    U.update_motions(u, w_obs, hold=None, kappa=kappa, global_search=True)
+    # The maximiser of tr(R M^T) over orthonormal rows is the polar factor of M.
+    Uu, _, Vt = np.linalg.svd(mean, full_matrices=False)
+    np.testing.assert_allclose(u.rot[:, f], Uu @ Vt, atol=1e-6)
 
 
 def test_vertex_update_solves_the_chain_exactly(scene):

@@ -29,7 +29,7 @@ from ..._validation import check_labels, check_positive
 from ...skeleton import Skeleton
 from ...trajectories import Trajectories
 from ..base import StickEstimator, register
-from .impute import refit_motions, start_state
+from .impute import refit_motions, rotation_concentration, start_state
 from .initialise import fill_gaps, initial_state
 from .model import Observations, Priors, StickState, normalise
 from .refine import misfit_ratios
@@ -221,6 +221,18 @@ class EMSkeleton(StickEstimator):
         at least 1e-3 of the spread, so noiseless data are not over-segmented).
     impute_iter : int
         EM iterations used to re-fit motions on new frames in :meth:`impute`.
+    impute_joint_ends : bool
+        In :meth:`impute`, update each stick's motion and its endpoint posteriors as
+        one block (default True; docs/em.md section 8): the same objective, but an
+        endpoint no longer anchors the stick to its previous pose, so a partly
+        hidden stick reaches the pose its visible points give. False: the paper's
+        order (endpoints, then motions against them).
+    impute_rotation_prior : bool
+        In :meth:`impute`, a von Mises-Fisher chain prior on each stick's rotations
+        from frame to frame, its concentration matched to the trained motions
+        (default True; docs/em.md section 8): where a few visible points leave a
+        stick's pose loosely determined, it stays near its neighbours' rotations.
+        False: no prior on motions (the paper's model).
     random_state : None, int or Generator
     progress : bool
         Show a tqdm progress bar over the merge stages (stage k of n, objective).
@@ -244,6 +256,7 @@ class EMSkeleton(StickEstimator):
                  max_frames: int | None = 400, oversegment: float | None = 3.5, n_jobs: int | None = None,
                  tau_p: float = 25.0,
                  alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e6, impute_iter: int = 100,
+                 impute_joint_ends: bool = True, impute_rotation_prior: bool = True,
                  random_state: Any = None, progress: bool = False) -> None:
         self.n_iter = n_iter
         self.n_iter_merge = n_iter_merge
@@ -283,6 +296,8 @@ class EMSkeleton(StickEstimator):
         self.beta0 = beta0
         self.max_precision = max_precision
         self.impute_iter = impute_iter
+        self.impute_joint_ends = impute_joint_ends
+        self.impute_rotation_prior = impute_rotation_prior
         self.random_state = random_state
         self.progress = progress
 
@@ -311,6 +326,9 @@ class EMSkeleton(StickEstimator):
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(map(repr, allowed))}, got {getattr(self, name)!r}")
+        for name in ("impute_joint_ends", "impute_rotation_prior"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
         if isinstance(self.max_trees, (str, bool)) and self.max_trees != "auto":
             raise ValueError(f"max_trees must be a positive integer, 'auto' or None, got {self.max_trees!r}")
         if self.max_trees is not None and self.max_trees != "auto":
@@ -379,14 +397,23 @@ class EMSkeleton(StickEstimator):
         in the branch it starts in) update endpoints, vertices, vertex precisions
         and motions; in frames where a stick's visible points and its joints
         (endpoints on a vertex shared with another stick) number fewer than 3 its
-        rotation keeps the interpolated value (the model has no prior on motions,
-        so such a frame cannot pin it down) while its translation is updated.
+        rotation keeps the interpolated value (such a frame cannot pin it down)
+        while its translation is updated. With ``impute_joint_ends`` each stick's
+        motion and endpoints are updated as one block, and with
+        ``impute_rotation_prior`` each rotation is also drawn toward its
+        neighbouring frames' by a prior matched to the trained motions
+        (docs/em.md section 8).
         """
         state, obs, norm = _impute_state(skeleton, traj)
         n_iter = int(skeleton.params.get("impute_iter", 100))
         priors = Priors(**skeleton.info["priors"])
         settings = EMSettings(**{**skeleton.info["settings"], "tol": 0.0})
-        refit_motions(state, obs, priors, settings, n_iter)
+        # A model saved before these options imputes with their defaults.
+        kappa = None
+        if skeleton.params.get("impute_rotation_prior", True):
+            kappa = rotation_concentration(np.asarray(skeleton.motions, float)[..., :3])
+        refit_motions(state, obs, priors, settings, n_iter,
+                      collapse=bool(skeleton.params.get("impute_joint_ends", True)), kappa=kappa)
         centre, scale = norm
         return state.point_predictions() * scale + centre
 

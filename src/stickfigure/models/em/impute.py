@@ -18,7 +18,7 @@ from .initialise import interpolate_rotations
 from .model import Observations, Priors, StickState, chain_degree
 from .updates import FLAT_RATIO, em_sweep, update_endpoints
 
-__all__ = ["start_state", "refit_motions", "heldout_error"]
+__all__ = ["start_state", "refit_motions", "heldout_error", "rotation_concentration"]
 
 
 def start_state(labels: np.ndarray, local: np.ndarray, ends: np.ndarray, vertex_of: np.ndarray,
@@ -105,7 +105,8 @@ def start_state(labels: np.ndarray, local: np.ndarray, ends: np.ndarray, vertex_
     return st
 
 
-def refit_motions(st: StickState, obs: Observations, priors: Priors, settings: Any, n_iter: int) -> StickState:
+def refit_motions(st: StickState, obs: Observations, priors: Priors, settings: Any, n_iter: int, *,
+                  collapse: bool = False, kappa: np.ndarray | None = None) -> StickState:
     """``n_iter`` EM iterations with L, K, the structure and the precisions fixed (in place).
 
     In frames where a stick's visible points and its joints (endpoints on a vertex
@@ -118,7 +119,9 @@ def refit_motions(st: StickState, obs: Observations, priors: Priors, settings: A
     Every ``settings.resample_every`` sweeps, except in the last ones, the multi-start
     rotation search of training runs too: a rotation fitted to a few nearly coplanar
     points can sit in the mirror branch, and the joints (endpoint terms) tell the
-    branches apart.
+    branches apart. ``collapse`` updates motions and endpoints as one block, and
+    ``kappa`` (S,) adds a smoothness prior on each stick's rotations
+    (:func:`.updates.update_motions`, :func:`rotation_concentration`; docs/em.md section 8).
     """
     # A joint (an endpoint on a vertex shared with another stick) pins a point of the stick too.
     joined = st.joints_per_stick()
@@ -126,7 +129,8 @@ def refit_motions(st: StickState, obs: Observations, priors: Priors, settings: A
     every = max(int(settings.resample_every), 1) if settings.resample_every else 10
     for it in range(n_iter):
         em_sweep(st, obs, priors, precisions=False, local=False, n_procrustes=settings.n_procrustes,
-                 hold=hold, global_rotations=it % every == 0 and it < n_iter - every)
+                 hold=hold, global_rotations=it % every == 0 and it < n_iter - every, collapse=collapse,
+                 kappa=kappa)
     return st
 
 
@@ -158,3 +162,34 @@ def heldout_error(st: StickState, obs: Observations, priors: Priors, settings: A
     refit_motions(start, sub, priors, settings, n_iter)
     err = np.sum((start.point_predictions() - obs.w) ** 2, axis=2)
     return np.sum(np.where(hid, err, 0.0), axis=1)
+
+
+def rotation_concentration(rot: np.ndarray) -> np.ndarray:
+    """Concentration kappa (S,) of a von Mises-Fisher chain on each stick's rotations, from motions.
+
+    The prior ``p(R_f | R_f-1) ~ exp(kappa tr(R_f R_f-1^T))`` over the D rows the projection
+    sees (docs/em.md section 8). For a small turn omega between frames, ``D - tr`` is
+    ``omega_z^2 + (omega_x^2 + omega_y^2) / 2`` for D = 2, so the prior puts variance
+    ``1 / (2 kappa)`` on the turn in the image plane; matched to the trained motions'
+    ``E[D - tr]`` (= 2 sigma^2 for an isotropic turn of variance sigma^2 per axis) that is
+    ``kappa = 1 / E[D - tr]``. A mirror flip between frames (a flat stick's two equal fits)
+    counts as a large turn, which only weakens the prior.
+
+    Parameters
+    ----------
+    rot : ndarray, shape (S, F, D, 3)
+        Rotations with orthonormal rows (the trained motions).
+
+    Returns
+    -------
+    ndarray, shape (S,)
+        0 where there are fewer than two frames.
+    """
+    rot = np.asarray(rot, float)
+    if rot.ndim != 4 or rot.shape[-1] != 3:
+        raise ValueError(f"rot must have shape (S, F, D, 3), got {rot.shape}")
+    S, F, D, _ = rot.shape
+    if F < 2:
+        return np.zeros(S)
+    tr = np.einsum("sfij,sfij->sf", rot[:, 1:], rot[:, :-1])
+    return 1.0 / np.maximum(np.mean(D - tr, axis=1), 1e-12)

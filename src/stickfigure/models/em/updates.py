@@ -128,32 +128,58 @@ def update_phi(st: StickState, priors: Priors) -> None:
     st.beta = priors.beta0 + 0.5 * np.maximum(ss, 0.0)
 
 
-def _motion_statistics(st: StickState, obs: Observations) -> tuple[np.ndarray, ...]:
+def _motion_statistics(st: StickState, obs: Observations, collapse: bool = False,
+                       kappa: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
     """Weighted centroids and centred second moments of each (stick, frame) Procrustes problem.
 
     Sources are the stick's visible points (weight tau_w, target w, source l)
-    and its two endpoints (weight tau_m, target mu(e), source k).
+    and its endpoints: with ``collapse`` False (the paper's M-step) weight tau_m,
+    target mu(e), source k; with ``collapse`` True the endpoint posterior is
+    optimised jointly with the motion (:func:`update_motions`): weight
+    ``tau_m a_g / (tau_m + a_g)``, target the vertex mean mu(v_g), source k.
+    ``kappa`` (S,): a rotation prior ``kappa tr(R (R_f-1 + R_f+1)^T)`` on each frame given its
+    neighbours' current rotations, which adds ``kappa (R_f-1 + R_f+1)`` to C_ab.
 
     Returns
     -------
     a_bar : (S, F, D), b_bar : (S, F, 3), C_ab : (S, F, D, 3), C_bb : (S, F, 3, 3)
+
     """
     S, F, D = st.trans.shape
     des = st.design(obs)
     s_l, s_ll, s_wl = des.point_stats(st.local)
     s_w, n = des.s_w, des.n
-    tw, tm = st.tau_w, st.tau_m
+    tw = st.tau_w
     E = st.ends_per_stick
     ends = st.ends.reshape(S, E, 3)
-    mue = st.mu_e.reshape(S, E, F, D)
-    W0 = tw * n + E * tm  # (S, F)
-    a_bar = (tw * s_w + tm * mue.sum(axis=1)) / W0[..., None]
-    b_bar = (tw * s_l + tm * ends.sum(axis=1)[:, None, :]) / W0[..., None]
-    e_cross = sum(mue[:, e, :, :, None] * ends[:, e, None, None, :] for e in range(E))  # (S, F, D, 3)
-    C_ab = tw * s_wl + tm * e_cross - W0[..., None, None] * (a_bar[..., :, None] * b_bar[..., None, :])
-    kk = np.swapaxes(ends, 1, 2) @ ends  # (S, 3, 3)
-    C_bb = tw * s_ll + tm * kk[:, None] - W0[..., None, None] * (b_bar[..., :, None] * b_bar[..., None, :])
+    if not collapse:  # the paper's M-step (kept as it was, operation for operation)
+        tm = st.tau_m
+        mue = st.mu_e.reshape(S, E, F, D)
+        W0 = tw * n + E * tm  # (S, F)
+        a_bar = (tw * s_w + tm * mue.sum(axis=1)) / W0[..., None]
+        b_bar = (tw * s_l + tm * ends.sum(axis=1)[:, None, :]) / W0[..., None]
+        e_cross = sum(mue[:, e, :, :, None] * ends[:, e, None, None, :] for e in range(E))  # (S, F, D, 3)
+        C_ab = tw * s_wl + tm * e_cross - W0[..., None, None] * (a_bar[..., :, None] * b_bar[..., None, :])
+        kk = np.swapaxes(ends, 1, 2) @ ends  # (S, 3, 3)
+        C_bb = tw * s_ll + tm * kk[:, None] - W0[..., None, None] * (b_bar[..., :, None] * b_bar[..., None, :])
+    else:
+        a = (st.alpha / st.beta)[st.vertex_of]
+        wm = (st.tau_m * a / (st.tau_m + a)).reshape(S, E)  # the two springs in series
+        tgt = st.mu_v[st.vertex_of].reshape(S, E, F, D)
+        W0 = tw * n + wm.sum(axis=1)[:, None]
+        a_bar = (tw * s_w + np.einsum("se,sefd->sfd", wm, tgt)) / W0[..., None]
+        b_bar = (tw * s_l + (wm[..., None] * ends).sum(axis=1)[:, None, :]) / W0[..., None]
+        e_cross = sum(wm[:, e, None, None, None] * tgt[:, e, :, :, None] * ends[:, e, None, None, :]
+                      for e in range(E))
+        C_ab = tw * s_wl + e_cross - W0[..., None, None] * (a_bar[..., :, None] * b_bar[..., None, :])
+        kk = np.einsum("se,sej,sek->sjk", wm, ends, ends)
+        C_bb = tw * s_ll + kk[:, None] - W0[..., None, None] * (b_bar[..., :, None] * b_bar[..., None, :])
     C_bb = 0.5 * (C_bb + np.swapaxes(C_bb, -1, -2))
+    if kappa is not None and F > 1:
+        nb = np.zeros_like(st.rot)
+        nb[:, 1:] += st.rot[:, :-1]
+        nb[:, :-1] += st.rot[:, 1:]
+        C_ab = C_ab + np.asarray(kappa, float)[:, None, None, None] * nb
     return a_bar, b_bar, C_ab, C_bb
 
 
@@ -523,7 +549,8 @@ def underdetermined_frames(st: StickState, obs: Observations) -> np.ndarray | No
 
 def update_motions(st: StickState, obs: Observations, *, n_procrustes: int = 1, newton: bool = False,
                    global_search: bool = False, sticks: np.ndarray | None = None, use_polar: bool = True,
-                   hold: np.ndarray | None | str = "auto", n_newton: int = 2, only_mirrors: bool = False) -> None:
+                   hold: np.ndarray | None | str = "auto", n_newton: int = 2, only_mirrors: bool = False,
+                   collapse: bool = False, kappa: np.ndarray | None = None) -> None:
     """Rotations and translations of every stick in every frame, jointly.
 
     The weighted problem ``min_{R,t} sum_n w_n |a_n - R b_n - t|^2`` over the
@@ -543,10 +570,28 @@ def update_motions(st: StickState, obs: Observations, *, n_procrustes: int = 1, 
     interpolation of the stick's rotations in its nearest determined frames
     where that lowers the frame's energy, else it stays (so the update stays
     monotone). Translations are updated everywhere.
+
+    ``collapse`` optimises the motions and the endpoint posteriors jointly (a
+    larger block of the same coordinate ascent; derivation in docs/em.md
+    section 8). For fixed M and vertex mean mu(v), the endpoint terms
+    ``tau_m |mu(e) - M k|^2 + a_g |mu(e) - mu(v)|^2`` are minimised by
+    :func:`update_endpoints`' mean and then equal ``tau_m a_g / (tau_m + a_g)
+    |M k - mu(v)|^2``: the motion is fitted with every endpoint pulled to its
+    vertex by that series weight, and mu(e) is set afterwards. The paper's
+    order (mu(e) first, then M against it) makes each endpoint an anchor of
+    weight tau_m at the stick's previous pose: where tau_m is ten times tau_w
+    and an endpoint sits far from the points, a stick's rotation moves a
+    small part of the way to the data per sweep.
+
+    ``kappa`` (S,) adds a von Mises-Fisher chain prior on each stick's rotations
+    (imputation only; :func:`.impute.rotation_concentration`): each frame's rotation
+    is the MAP given its neighbours' current ones, all frames at once (a Jacobi
+    step; frames the data cannot determine are held as above, so no frame is moved
+    by its neighbours alone).
     """
     if isinstance(hold, str):
         hold = underdetermined_frames(st, obs) if hold == "auto" else None
-    a_bar, b_bar, C_ab, C_bb = _motion_statistics(st, obs)
+    a_bar, b_bar, C_ab, C_bb = _motion_statistics(st, obs, collapse, kappa)
     q0 = st._quat if st._quat is not None and st._quat_of is st.rot else rot_to_quat(complete_rotation(st.rot))
     R_new, q_new = procrustes_step(st.rot, C_ab, C_bb, n_outer=n_procrustes, quat=q0)
     old = _rotation_energy(st.rot, C_ab, C_bb)
@@ -581,6 +626,8 @@ def update_motions(st: StickState, obs: Observations, *, n_procrustes: int = 1, 
     st._quat = q
     st._quat_of = R
     st.trans = a_bar - (R @ b_bar[..., None])[..., 0]
+    if collapse:
+        update_endpoints(st)  # the endpoint half of the joint step
 
 
 def update_local(st: StickState, obs: Observations, priors: Priors) -> None:
@@ -637,7 +684,8 @@ def update_precisions(st: StickState, obs: Observations, priors: Priors) -> None
 
 def em_sweep(st: StickState, obs: Observations, priors: Priors, *, precisions: bool = True,
              local: bool = True, n_procrustes: int = 1, global_rotations: bool = False,
-             use_polar: bool = True, hold: np.ndarray | None | str = "auto") -> None:
+             use_polar: bool = True, hold: np.ndarray | None | str = "auto",
+             collapse: bool = False, kappa: np.ndarray | None = None) -> None:
     """One EM iteration: E-step (endpoints, vertices, phi) then M-step (motions, L, K, precisions).
 
     Parameters
@@ -652,12 +700,16 @@ def em_sweep(st: StickState, obs: Observations, priors: Priors, *, precisions: b
         (with the SVD start when ``use_polar``).
     hold : ndarray of bool, shape (S, F), "auto" or None
         Rotations the frames cannot determine (see :func:`update_motions`).
+    collapse : bool
+        Fit motions and endpoint posteriors jointly (see :func:`update_motions`).
+    kappa : ndarray, shape (S,), optional
+        A smoothness prior on each stick's rotations (see :func:`update_motions`).
     """
     update_endpoints(st)
     update_vertices(st)
     update_phi(st, priors)
     update_motions(st, obs, n_procrustes=n_procrustes, global_search=global_rotations, use_polar=use_polar,
-                   hold=hold)
+                   hold=hold, collapse=collapse, kappa=kappa)
     if local:
         update_local(st, obs, priors)
         update_ends(st, priors)
