@@ -141,7 +141,10 @@ def heldout_error(st: StickState, obs: Observations, priors: Priors, settings: A
     The model's L, K, G, R and precisions are kept; its motions are re-estimated
     from the visible entries as in imputation (:func:`start_state`,
     :func:`refit_motions`), so nothing it learned from a hidden entry's own frame
-    reaches the prediction except through the time-invariant shapes.
+    reaches the prediction except through the time-invariant shapes. The motion
+    update is the paper's order without the rotation prior (``Skeleton.impute``'s
+    defaults differ): the held-out check's margins were measured with it, and the
+    new update changed the CMU skeletons both ways (docs/em.md section 11).
 
     Parameters
     ----------

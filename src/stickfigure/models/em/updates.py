@@ -143,7 +143,6 @@ def _motion_statistics(st: StickState, obs: Observations, collapse: bool = False
     Returns
     -------
     a_bar : (S, F, D), b_bar : (S, F, 3), C_ab : (S, F, D, 3), C_bb : (S, F, 3, 3)
-
     """
     S, F, D = st.trans.shape
     des = st.design(obs)
