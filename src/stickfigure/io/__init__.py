@@ -24,9 +24,10 @@ say). Formats that describe whole figures also record ``meta["n_figures"]``: 1
 for ASF/AMC and the MoCap Toolbox, the ROOT hierarchies of a BVH, the subjects
 of a C3D (1 when its labels carry no subject prefix; None when no marker is
 labelled), the tracks of a SLEAP file. ``EMSkeleton(max_trees="auto")`` joins
-a learned forest down to that many trees. Bad files raise a one-line :class:`ValueError` that names the file; a
-missing file raises :class:`FileNotFoundError`; an unknown option raises
-:class:`TypeError` listing the reader's options. See ``docs/formats.md``.
+a learned forest down to that many trees. Bad files raise a one-line
+:class:`ValueError` that names the file; a missing file raises
+:class:`FileNotFoundError`; an unknown option raises :class:`TypeError` listing
+the reader's options. See ``docs/formats.md``.
 """
 
 from __future__ import annotations
