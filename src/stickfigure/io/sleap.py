@@ -288,7 +288,7 @@ def load_slp(
             "frame_offset": first,
             "labelled_frames": labelled.tolist(),
             "tracks": [all_names[c] for c in used.tolist()],
-            "n_figures": len(used.tolist()),  # one animal per track
+            "n_figures": len(used),  # one animal per track
             "nodes": node_names,
             "skeleton_edges": [list(e) for e in sk_edges],
             "instances": instances,

@@ -973,13 +973,12 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
         from .tree import join_trees
 
         _, at, cur = best[selection]
-        if int(components(cur)[0].max()) + 1 > settings.max_trees:
-            cur, val, n, joined = join_trees(cur.copy(), obs, priors, settings, rng, stages[at].objective,
-                                             settings.max_trees)
-            if joined:
-                stages.append(_stage(cur, obs, val, None, n, ref))
-                stages[-1].joined = joined
-                best[selection] = (getattr(stages[-1], selection), len(stages) - 1, cur.copy())
+        cur, val, n, joined = join_trees(cur.copy(), obs, priors, settings, rng, stages[at].objective,
+                                         settings.max_trees)
+        if joined:  # none when the forest has max_trees trees or fewer
+            stages.append(_stage(cur, obs, val, None, n, ref))
+            stages[-1].joined = joined
+            best[selection] = (getattr(stages[-1], selection), len(stages) - 1, cur.copy())
     if settings.reattach:
         # Sub-tree moves (tree.py): the greedy search never undoes a merge, and a contracted
         # stick links its two neighbours whatever they are; a part hanging from the wrong stick

@@ -197,8 +197,10 @@ def join_trees(st: StickState, obs: Observations, priors: Priors, settings, rng:
     E = st.ends_per_stick
     joined: list[list[int]] = []
     sweeps = 0
-    while int(components(st)[0].max()) + 1 > max_trees:
+    while True:
         comp = components(st)[0]
+        if int(comp.max()) + 1 <= max_trees:
+            break
         cands = [c for c in merge_candidates(st, settings, st.design(obs).n)
                  if np.unique(comp[np.unique(c.ends // E)]).size > 1]
         if not cands:

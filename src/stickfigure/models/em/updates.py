@@ -151,28 +151,31 @@ def _motion_statistics(st: StickState, obs: Observations, collapse: bool = False
     tw = st.tau_w
     E = st.ends_per_stick
     ends = st.ends.reshape(S, E, 3)
-    if not collapse:  # the paper's M-step (kept as it was, operation for operation)
+    # Per stick: the endpoints' total weight (S, 1), weighted target sum (S, F, D), weighted
+    # source sum (S, 3), cross moment (S, F, D, 3) and second moment (S, 3, 3).
+    if not collapse:  # the paper's M-step (its operations in their order: results unchanged)
         tm = st.tau_m
         mue = st.mu_e.reshape(S, E, F, D)
-        W0 = tw * n + E * tm  # (S, F)
-        a_bar = (tw * s_w + tm * mue.sum(axis=1)) / W0[..., None]
-        b_bar = (tw * s_l + tm * ends.sum(axis=1)[:, None, :]) / W0[..., None]
-        e_cross = sum(mue[:, e, :, :, None] * ends[:, e, None, None, :] for e in range(E))  # (S, F, D, 3)
-        C_ab = tw * s_wl + tm * e_cross - W0[..., None, None] * (a_bar[..., :, None] * b_bar[..., None, :])
-        kk = np.swapaxes(ends, 1, 2) @ ends  # (S, 3, 3)
-        C_bb = tw * s_ll + tm * kk[:, None] - W0[..., None, None] * (b_bar[..., :, None] * b_bar[..., None, :])
+        w_sum = E * tm
+        t_sum = tm * mue.sum(axis=1)
+        k_sum = tm * ends.sum(axis=1)
+        e_cross = tm * sum(mue[:, e, :, :, None] * ends[:, e, None, None, :] for e in range(E))
+        kk = tm * (np.swapaxes(ends, 1, 2) @ ends)
     else:
         a = (st.alpha / st.beta)[st.vertex_of]
         wm = (st.tau_m * a / (st.tau_m + a)).reshape(S, E)  # the two springs in series
         tgt = st.mu_v[st.vertex_of].reshape(S, E, F, D)
-        W0 = tw * n + wm.sum(axis=1)[:, None]
-        a_bar = (tw * s_w + np.einsum("se,sefd->sfd", wm, tgt)) / W0[..., None]
-        b_bar = (tw * s_l + (wm[..., None] * ends).sum(axis=1)[:, None, :]) / W0[..., None]
+        w_sum = wm.sum(axis=1)[:, None]
+        t_sum = np.einsum("se,sefd->sfd", wm, tgt)
+        k_sum = (wm[..., None] * ends).sum(axis=1)
         e_cross = sum(wm[:, e, None, None, None] * tgt[:, e, :, :, None] * ends[:, e, None, None, :]
                       for e in range(E))
-        C_ab = tw * s_wl + e_cross - W0[..., None, None] * (a_bar[..., :, None] * b_bar[..., None, :])
         kk = np.einsum("se,sej,sek->sjk", wm, ends, ends)
-        C_bb = tw * s_ll + kk[:, None] - W0[..., None, None] * (b_bar[..., :, None] * b_bar[..., None, :])
+    W0 = tw * n + w_sum  # (S, F)
+    a_bar = (tw * s_w + t_sum) / W0[..., None]
+    b_bar = (tw * s_l + k_sum[:, None, :]) / W0[..., None]
+    C_ab = tw * s_wl + e_cross - W0[..., None, None] * (a_bar[..., :, None] * b_bar[..., None, :])
+    C_bb = tw * s_ll + kk[:, None] - W0[..., None, None] * (b_bar[..., :, None] * b_bar[..., None, :])
     C_bb = 0.5 * (C_bb + np.swapaxes(C_bb, -1, -2))
     if kappa is not None and F > 1:
         nb = np.zeros_like(st.rot)
