@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from sklearn.metrics import adjusted_rand_score
 
 import stickfigure as sf
 from stickfigure.models.em import structure as S
@@ -451,3 +452,36 @@ def test_slerp_fill_matches_the_single_stick_interpolation():
     rel = Rotation.from_matrix(U.complete_rotation(R[5]).T @ U.complete_rotation(R[9])).as_rotvec()
     mid = U.complete_rotation(R[5]) @ Rotation.from_rotvec(rel / 2).as_matrix()
     np.testing.assert_allclose(got[7], mid[:2], atol=1e-9)
+
+
+def test_split_after_dissolve_gives_a_segment_back_and_spares_small_sticks():
+    """A stick that took a dissolved segment's points is split at their joint; smaller ones are not."""
+    from stickfigure.models.em.refine import split_after_dissolve
+
+    traj = sf.synthetic.random_figure(n_sticks=5, frames=80, noise=0.01, seed=11, points_per_stick=6)
+    a, b = traj.edges_true[0]
+    keep = np.ones(traj.n_points, bool)
+    keep[np.flatnonzero(traj.labels_true == b)[2:]] = False  # a 2-point segment, as a CMU thigh
+    traj = traj.slice(points=keep)
+    truth = traj.labels_true
+    pri, rng = Priors(), np.random.default_rng(0)
+    obs, _, _ = normalise(traj.xy)
+    settings = S.EMSettings(resample_every=0)
+    # The segment's points on its parent's stick, as a dissolution leaves them.
+    merged = np.where(truth == b, a, truth)
+    _, merged = np.unique(merged, return_inverse=True)
+    st = initial_state(obs, merged, 4, pri, rng, n_ends=3)
+    st, _, _ = S.run_em(st, obs, pri, settings, 100, rng)
+    s = int(merged[np.flatnonzero(truth == b)[0]])
+    size = int(np.sum(merged == s))
+    # Every stick below min_points: nothing is tried, the state comes back as it was.
+    same, val, sweeps, split = split_after_dissolve(st, obs, pri, settings, rng, size + 1)
+    assert same is st and val is None and sweeps == 0 and split == []
+    new, val, sweeps, split = split_after_dissolve(st, obs, pri, settings, rng, size)
+    assert split == [s] and sweeps > 0 and val == pytest.approx(objective(new, obs, pri), rel=1e-6)
+    # The new stick holds the segment (a cut across the parent's length may take the point
+    # nearest the joint with it).
+    child = np.unique(new.labels[truth == b])
+    assert child.size == 1 and child[0] != s and np.sum(new.labels == child[0]) <= 3
+    assert adjusted_rand_score(truth, new.labels) > 0.9
+    assert new.n_sticks == 5 and len(S.stick_edges(new)[0]) == 1  # the pieces share their joint

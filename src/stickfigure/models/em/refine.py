@@ -725,6 +725,41 @@ def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings
     return st, value, sweeps, done, info
 
 
+def split_after_dissolve(st: StickState, obs: Observations, priors: Priors, settings,
+                         rng: np.random.Generator, min_points: int) -> tuple[StickState, float | None, int, list[int]]:
+    """One round of articulated splits on the sticks of at least ``min_points`` points.
+
+    Run after the held-out check (:func:`heldout_dissolve`) has dissolved sticks.
+    A dissolved stick's points go to the sticks that explain them best with the
+    motions fixed, and a limb segment of two markers (a thigh: LTHI and LKNE on
+    the CMU set) can end up on a larger stick it is jointed to (the pelvis, the
+    thorax). That stick is then two parts, and the segment below the dissolved
+    one (the shin) has no stick it can hinge on: the resumed search
+    (``remerge``) and ``join_trees`` re-attach it by its best-scoring merge,
+    which on CMU 85_02 was the left upper arm or a foot (docs/em.md section 11).
+    The split test (:func:`articulated_split_candidates`, ``settings.split_axes``)
+    re-creates the segment where the fit asks for it. Sticks of fewer than
+    ``min_points`` points are left alone: splitting them re-creates the 1-2 point
+    sticks the check has just removed (with every stick, the CMU isometric view
+    went from 12 to 19 sticks). One round only, for the same reason.
+
+    Returns the state, its objective after an EM run of ``settings.n_iter``
+    sweeps (None when nothing was split), the sweeps run and the split sticks.
+    """
+    from .structure import run_em
+
+    sizes = np.bincount(st.labels, minlength=st.n_sticks)
+    skip = set(np.flatnonzero(sizes < min_points).tolist())
+    splits = articulated_split_candidates(st, obs, priors, n_axes=settings.split_axes, skip=skip)
+    if not splits:
+        return st, None, 0, []
+    new = apply_articulated_splits(st, obs, priors, splits)
+    if new is st:  # no split stick had a free endpoint for the new joint
+        return st, None, 0, []
+    new, val, sweeps = run_em(new, obs, priors, settings, settings.n_iter, rng)
+    return new, val, sweeps, [int(s) for s, _ in splits]
+
+
 # ----------------------------------------------------------------- moving groups of points
 def misfit_ratios(st: StickState, obs: Observations, priors: Priors) -> np.ndarray:
     """Each stick's residual variance over the robust noise variance, shape (S,).
