@@ -355,6 +355,12 @@ def _frames(st: StickState, frames: np.ndarray) -> StickState:
     return out
 
 
+def has_free_end(st: StickState, s: int) -> bool:
+    """Whether stick ``s`` has an endpoint on no joint (where a split can hang its new piece)."""
+    E = st.ends_per_stick
+    return bool((st.vertex_counts()[st.vertex_of[E * s:E * (s + 1)]] == 1).any())
+
+
 def apply_articulated_splits(st: StickState, obs: Observations, priors: Priors,
                              splits: list[tuple[int, np.ndarray]], *, n_sweeps: int = 40) -> StickState:
     """The model with every split stick replaced by two sticks joined at a new vertex.
@@ -377,7 +383,7 @@ def apply_articulated_splits(st: StickState, obs: Observations, priors: Priors,
     S, E = st.n_sticks, st.ends_per_stick
     F, D = st.n_frames, st.n_dims
     cnt = st.vertex_counts()
-    ok = [(s, h) for s, h in splits if (cnt[st.vertex_of[E * s:E * (s + 1)]] == 1).any()]
+    ok = [(s, h) for s, h in splits if has_free_end(st, s)]
     if not ok:
         return st
     blocks = [_split_block(st, obs, s, h.astype(bool), priors) for s, h in ok]
@@ -743,19 +749,21 @@ def split_after_dissolve(st: StickState, obs: Observations, priors: Priors, sett
     sticks the check has just removed (with every stick, the CMU isometric view
     went from 12 to 19 sticks). One round only, for the same reason.
 
+    A stick whose endpoints are all on joints is not split (:func:`apply_articulated_splits`
+    has nowhere to hang the new piece); on the CMU side view that is the thorax stick
+    holding RTHI, jointed to the pelvis, the head and the right arm.
+
     Returns the state, its objective after an EM run of ``settings.n_iter``
     sweeps (None when nothing was split), the sweeps run and the split sticks.
     """
     from .structure import run_em
 
     sizes = np.bincount(st.labels, minlength=st.n_sticks)
-    skip = set(np.flatnonzero(sizes < min_points).tolist())
+    skip = {s for s in range(st.n_sticks) if sizes[s] < min_points or not has_free_end(st, s)}
     splits = articulated_split_candidates(st, obs, priors, n_axes=settings.split_axes, skip=skip)
     if not splits:
         return st, None, 0, []
     new = apply_articulated_splits(st, obs, priors, splits)
-    if new is st:  # no split stick had a free endpoint for the new joint
-        return st, None, 0, []
     new, val, sweeps = run_em(new, obs, priors, settings, settings.n_iter, rng)
     return new, val, sweeps, [int(s) for s, _ in splits]
 
