@@ -454,11 +454,11 @@ def test_slerp_fill_matches_the_single_stick_interpolation():
     np.testing.assert_allclose(got[7], mid[:2], atol=1e-9)
 
 
-def test_split_after_dissolve_gives_a_segment_back_and_spares_small_sticks(monkeypatch):
+def test_split_round_after_a_dissolution_gives_a_segment_back_and_spares_small_sticks(monkeypatch):
     """A stick that took a dissolved segment's points is split at their joint; smaller ones are not,
     nor one with no free endpoint to hang the piece on."""
     from stickfigure.models.em import refine
-    from stickfigure.models.em.refine import split_after_dissolve
+    from stickfigure.models.em.refine import articulated_split_round
 
     traj = sf.synthetic.random_figure(n_sticks=5, frames=80, noise=0.01, seed=11, points_per_stick=6)
     a, b = traj.edges_true[0]
@@ -477,15 +477,15 @@ def test_split_after_dissolve_gives_a_segment_back_and_spares_small_sticks(monke
     s = int(merged[np.flatnonzero(truth == b)[0]])
     size = int(np.sum(merged == s))
     # Every stick below min_points: nothing is tried, the state comes back as it was.
-    same, val, sweeps, split = split_after_dissolve(st, obs, pri, settings, rng, size + 1)
+    same, val, sweeps, split = articulated_split_round(st, obs, pri, settings, rng, size + 1)
     assert same is st and val is None and sweeps == 0 and split == []
     # Its endpoints all on joints (as a torso's): not offered.
     with monkeypatch.context() as m:
-        m.setattr(refine, "has_free_end", lambda state, k: k != s)
-        same, val, sweeps, split = split_after_dissolve(st, obs, pri, settings, rng, size)
+        m.setattr(refine, "free_end_sticks", lambda state: np.arange(state.n_sticks) != s)
+        same, val, sweeps, split = articulated_split_round(st, obs, pri, settings, rng, size)
     assert same is st and val is None and split == []
-    assert refine.has_free_end(st, s)
-    new, val, sweeps, split = split_after_dissolve(st, obs, pri, settings, rng, size)
+    assert refine.free_end_sticks(st)[s]
+    new, val, sweeps, split = articulated_split_round(st, obs, pri, settings, rng, size)
     assert split == [s] and sweeps > 0 and val == pytest.approx(objective(new, obs, pri), rel=1e-6)
     # The new stick holds the segment (a cut across the parent's length may take the point
     # nearest the joint with it).

@@ -355,10 +355,9 @@ def _frames(st: StickState, frames: np.ndarray) -> StickState:
     return out
 
 
-def has_free_end(st: StickState, s: int) -> bool:
-    """Whether stick ``s`` has an endpoint on no joint (where a split can hang its new piece)."""
-    E = st.ends_per_stick
-    return bool((st.vertex_counts()[st.vertex_of[E * s:E * (s + 1)]] == 1).any())
+def free_end_sticks(st: StickState) -> np.ndarray:
+    """Which sticks have an endpoint on no joint (where a split can hang its new piece), shape (S,)."""
+    return (st.vertex_counts()[st.vertex_of] == 1).reshape(st.n_sticks, st.ends_per_stick).any(axis=1)
 
 
 def apply_articulated_splits(st: StickState, obs: Observations, priors: Priors,
@@ -383,7 +382,8 @@ def apply_articulated_splits(st: StickState, obs: Observations, priors: Priors,
     S, E = st.n_sticks, st.ends_per_stick
     F, D = st.n_frames, st.n_dims
     cnt = st.vertex_counts()
-    ok = [(s, h) for s, h in splits if has_free_end(st, s)]
+    free = free_end_sticks(st)
+    ok = [(s, h) for s, h in splits if free[s]]
     if not ok:
         return st
     blocks = [_split_block(st, obs, s, h.astype(bool), priors) for s, h in ok]
@@ -731,27 +731,30 @@ def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings
     return st, value, sweeps, done, info
 
 
-def split_after_dissolve(st: StickState, obs: Observations, priors: Priors, settings,
-                         rng: np.random.Generator, min_points: int) -> tuple[StickState, float | None, int, list[int]]:
-    """One round of articulated splits on the sticks of at least ``min_points`` points.
+def articulated_split_round(st: StickState, obs: Observations, priors: Priors, settings,
+                            rng: np.random.Generator, min_points: int = 0
+                            ) -> tuple[StickState, float | None, int, list[int]]:
+    """One round of articulated splits: candidates, the splits put in, an EM run.
 
-    Run after the held-out check (:func:`heldout_dissolve`) has dissolved sticks.
-    A dissolved stick's points go to the sticks that explain them best with the
-    motions fixed, and a limb segment of two markers (a thigh: LTHI and LKNE on
-    the CMU set) can end up on a larger stick it is jointed to (the pelvis, the
-    thorax). That stick is then two parts, and the segment below the dissolved
-    one (the shin) has no stick it can hinge on: the resumed search
-    (``remerge``) and ``join_trees`` re-attach it by its best-scoring merge,
-    which on CMU 85_02 was the left upper arm or a foot (docs/em.md section 11).
-    The split test (:func:`articulated_split_candidates`, ``settings.split_axes``)
-    re-creates the segment where the fit asks for it. Sticks of fewer than
-    ``min_points`` points are left alone: splitting them re-creates the 1-2 point
-    sticks the check has just removed (with every stick, the CMU isometric view
-    went from 12 to 19 sticks). One round only, for the same reason.
+    The rounds after the first EM run (``articulated_rounds``) and the round after
+    the held-out check's dissolutions (``split_dissolved``) are this step. Only
+    sticks of at least ``min_points`` points with a free endpoint are tested
+    (:func:`articulated_split_candidates` with the others skipped):
+    :func:`apply_articulated_splits` has nowhere to hang the new piece of a stick
+    whose endpoints are all on joints (on the CMU side view, the thorax stick
+    holding RTHI, jointed to the pelvis, the head and the right arm).
 
-    A stick whose endpoints are all on joints is not split (:func:`apply_articulated_splits`
-    has nowhere to hang the new piece); on the CMU side view that is the thorax stick
-    holding RTHI, jointed to the pelvis, the head and the right arm.
+    After a dissolution (``min_points`` = ``split_dissolved``): a dissolved stick's
+    points go to the sticks that explain them best with the motions fixed, and a
+    limb segment of two markers (a thigh: LTHI and LKNE on the CMU set) can end up
+    on a larger stick it is jointed to (the pelvis, the thorax). That stick is then
+    two parts, and the segment below the dissolved one (the shin) has no stick it
+    can hinge on: the resumed search (``remerge``) and ``join_trees`` re-attach it
+    by its best-scoring merge, which on CMU 85_02 was the left upper arm or a foot
+    (docs/em.md section 11). The split test re-creates the segment where the fit
+    asks for it. Smaller sticks are left alone there, and there is one round only:
+    splitting them re-creates the 1-2 point sticks the check has just removed (with
+    every stick and all rounds, the CMU isometric view went from 12 to 19 sticks).
 
     Returns the state, its objective after an EM run of ``settings.n_iter``
     sweeps (None when nothing was split), the sweeps run and the split sticks.
@@ -759,7 +762,7 @@ def split_after_dissolve(st: StickState, obs: Observations, priors: Priors, sett
     from .structure import run_em
 
     sizes = np.bincount(st.labels, minlength=st.n_sticks)
-    skip = {s for s in range(st.n_sticks) if sizes[s] < min_points or not has_free_end(st, s)}
+    skip = set(np.flatnonzero((sizes < min_points) | ~free_end_sticks(st)).tolist())
     splits = articulated_split_candidates(st, obs, priors, n_axes=settings.split_axes, skip=skip)
     if not splits:
         return st, None, 0, []

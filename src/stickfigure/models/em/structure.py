@@ -53,7 +53,7 @@ Deviations from the printed algorithm, each a parameter (docs/em.md):
   stay apart; the best stage by the selection criterion among the dissolved state
   and those merges is kept.
 * ``split_dissolved`` (default 4): before that, one round of articulated splits
-  (``refine.split_after_dissolve``) on the sticks of at least this many points,
+  (``refine.articulated_split_round``) on the sticks of at least this many points,
   so that a stick that took a dissolved segment's points (a thigh's markers on the
   pelvis) gives the segment back before the search re-attaches what hung from it;
   0 turns it off.
@@ -789,7 +789,7 @@ class Stage:
     dissolved: list = field(default_factory=list)  # point sets of sticks dissolved (refine.dissolve_small_sticks)
     moved: int = 0  # points moved by refine.resplit_pairs
     heldout: dict | None = None  # the held-out check's errors (refine.heldout_dissolve)
-    split: list = field(default_factory=list)  # sticks split after it (refine.split_after_dissolve)
+    split: list = field(default_factory=list)  # sticks split after it (refine.articulated_split_round)
     search_bic: float | None = None  # the search's best BIC, before the held-out check (compares starts)
     reattached: list = field(default_factory=list)  # sub-tree moves kept (tree.reattach_subtrees)
     joined: list = field(default_factory=list)  # stick pairs joined to reach max_trees (tree.join_trees)
@@ -880,16 +880,13 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
         st, val, more = run_em(st, obs, priors, settings, settings.n_iter, rng)
         sweeps += more
     for _ in range(settings.articulated_rounds if settings.refine_sticks else 0):
-        from .refine import apply_articulated_splits, articulated_split_candidates
+        from .refine import articulated_split_round
 
-        splits = articulated_split_candidates(st, obs, priors, n_axes=settings.split_axes)
-        if not splits:
+        new, v, more, split = articulated_split_round(st, obs, priors, settings, rng)
+        if not split:
             break
-        new = apply_articulated_splits(st, obs, priors, splits)
-        if new is st:
-            break
-        refinements.append({"articulated_splits": [int(s) for s, _ in splits]})
-        st, val, more = run_em(new, obs, priors, settings, settings.n_iter, rng)
+        refinements.append({"articulated_splits": split})
+        st, val = new, v
         sweeps += more
     stages = [_stage(st, obs, val, None, sweeps, ref)]
     stages[0].refinements = refinements
@@ -966,9 +963,9 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
             # markers on the pelvis): split it before the search re-attaches what hung below.
             # Not judged by the check's prediction, which prefers the fewer sticks (docs/em.md
             # section 11).
-            from .refine import split_after_dissolve
+            from .refine import articulated_split_round
 
-            cur, v, more, split = split_after_dissolve(cur, obs, priors, settings, hrng, settings.split_dissolved)
+            cur, v, more, split = articulated_split_round(cur, obs, priors, settings, hrng, settings.split_dissolved)
             val, n = (val if v is None else v), n + more
         if gone:
             stages.append(_stage(cur, obs, val, None, n, ref))
