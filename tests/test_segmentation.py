@@ -62,6 +62,27 @@ def test_noise_level_and_rigid_affinity_on_independent_bodies():
     assert info["inliers"].shape[1] == len(labels)
 
 
+def test_coincident_trajectories_do_not_pass_for_noiseless_rigid_sets():
+    # HDM05's C3D files repeat labelled markers as unlabelled ones, bit for bit. A local set
+    # holding both copies has rank + 1 distinct trajectories, which an affine fit matches
+    # exactly; taken as the most rigid set, it put the noise level at ~1e-6 of the truth.
+    xy, labels = rigid_bodies(seed=1, noise=0.02)
+    copies = np.arange(0, len(labels), 3)
+    dup = np.concatenate([xy, xy[copies]])
+    assert g.noise_level(dup) == pytest.approx(g.noise_level(xy), rel=0.15)
+    assert g.noise_level(dup) == pytest.approx(0.02, rel=0.2)
+    A, info = g.rigid_affinity(dup, return_info=True)
+    assert info["sigma"] == pytest.approx(0.02, rel=0.2)
+    lab = np.concatenate([labels, labels[copies]])
+    same = lab[:, None] == lab[None, :]
+    assert np.median(A[same]) > 0.5 and np.mean(A[~same]) < 0.03
+    # A copy sits with its original.
+    n = len(labels)
+    assert np.all(A[np.arange(n, n + copies.size), copies] > 0.5)
+    with pytest.raises(ValueError, match="distinct trajectories"):
+        g.noise_level(np.concatenate([xy[:4]] * 3))
+
+
 def test_rigid_affinity_errors():
     with pytest.raises(ValueError, match="at least"):
         g.rigid_affinity(np.zeros((4, 10, 2)))

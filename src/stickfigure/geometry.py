@@ -1010,6 +1010,28 @@ def _trajectory_distances(G: np.ndarray, n_frames: int) -> np.ndarray:
     return np.sqrt(np.maximum(d[:, None] + d[None, :] - 2.0 * G, 0.0) / n_frames)
 
 
+def _coincident_representatives(dist: np.ndarray, rtol: float = 1e-6) -> np.ndarray:
+    """For every trajectory, the first one it coincides with (itself if none), shape (P,).
+
+    Coincident means an RMS distance of at most ``rtol`` times the largest pairwise
+    distance: copies of one marker (HDM05's C3D files repeat three labelled markers
+    as unlabelled ones), not two noisy tracks of one feature. Distances from the
+    Gram matrix carry a rounding error of about ``sqrt(eps)`` of the trajectories'
+    norm, so the tolerance is well above it.
+    """
+    P = dist.shape[0]
+    tol = rtol * max(float(np.max(dist, initial=0.0)), 1e-300)
+    same = dist <= tol
+    return np.argmax(same | np.eye(P, dtype=bool), axis=1)
+
+
+def _n_distinct_trajectories(xy: np.ndarray) -> int:
+    """How many trajectories are not copies of another (:func:`_coincident_representatives`)."""
+    xy = _complete_for_affinity(xy)
+    W = measurement_matrix(xy)
+    return int(np.unique(_coincident_representatives(_trajectory_distances(W.T @ W, xy.shape[1]))).size)
+
+
 def _best_local_sets(G: np.ndarray, dist: np.ndarray, points: np.ndarray, rank: int, n_candidates: int,
                      n_best: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """For each point, the (rank+2)-point set among itself and its nearest neighbours that is most rigid.
@@ -1022,10 +1044,17 @@ def _best_local_sets(G: np.ndarray, dist: np.ndarray, points: np.ndarray, rank: 
 
     P = G.shape[0]
     m = rank + 2
-    k = min(n_candidates, P - 1)
+    rep = _coincident_representatives(dist)
+    n_distinct = int(np.unique(rep).size)
+    k = min(n_candidates, n_distinct - 1)
     if k < m - 1:
-        raise ValueError(f"need at least {m} trajectories for rank-{rank} rigidity tests, got {P}")
+        raise ValueError(f"need at least {m} distinct trajectories for rank-{rank} rigidity tests, got "
+                         f"{n_distinct} (of {P})")
     dd = dist[points].copy()
+    # A set holding two copies of one trajectory has fewer than m distinct members, which an
+    # affine rank-``rank`` model fits exactly: its zero residual would pass for a noiseless
+    # rigid part. Candidates are therefore one copy of every trajectory but the point's own.
+    dd[(rep[points][:, None] == rep[None, :]) | (rep != np.arange(P))[None, :]] = np.inf
     dd[np.arange(points.size), points] = -1.0  # the point itself comes first
     cand = np.argsort(dd, axis=1, kind="stable")[:, 1:k + 1]
     combos = np.array(list(itertools.combinations(range(k), m - 1)))

@@ -639,7 +639,9 @@ def affinity_propagation_segments(
     rank = geometry._check_rank(rank)
     rng = check_random_state(random_state)
     seed = int(rng.integers(2**31 - 1))
-    if P < rank + 2:
+    # Fewer than rank + 2 distinct trajectories (copies of one marker count once) fit one
+    # rigid body exactly and admit no rigidity test.
+    if P < rank + 2 or geometry._n_distinct_trajectories(xy) < rank + 2:
         labels = np.zeros(P, np.int64)
         info = {"n_segments": 1, "preference": None, "estimated": None, "method": "trivial"}
         return (labels, info) if return_info else labels
