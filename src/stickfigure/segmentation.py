@@ -639,16 +639,18 @@ def affinity_propagation_segments(
     rank = geometry._check_rank(rank)
     rng = check_random_state(random_state)
     seed = int(rng.integers(2**31 - 1))
+    # Gaps filled once: the distinct count, the affinity and the rigidity checks all use it.
+    xyc = geometry._complete_for_affinity(xy) if P >= rank + 2 else xy
     # Fewer than rank + 2 distinct trajectories (copies of one marker count once) fit one
     # rigid body exactly and admit no rigidity test.
-    if P < rank + 2 or geometry._n_distinct_trajectories(xy) < rank + 2:
+    if P < rank + 2 or geometry._n_distinct_trajectories(xyc) < rank + 2:
         labels = np.zeros(P, np.int64)
         info = {"n_segments": 1, "preference": None, "estimated": None, "method": "trivial"}
         return (labels, info) if return_info else labels
     sigma = None
     inliers = None
     if affinity is None:
-        A, ainfo = geometry.rigid_affinity(xy, rank=rank, random_state=seed, return_info=True,
+        A, ainfo = geometry.rigid_affinity(xyc, rank=rank, random_state=seed, return_info=True,
                                            **(affinity_kwargs or {}))
         sigma, inliers = ainfo["sigma"], ainfo["inliers"]
     else:
@@ -678,7 +680,6 @@ def affinity_propagation_segments(
         # Every start is refined (and, with an estimated count, split/merged by
         # rigidity); the partition explaining the data best wins: fewest points in
         # non-rigid parts, then the lowest BIC (the lowest residual for a fixed count).
-        xyc = geometry._complete_for_affinity(xy)
         X = _Meas(geometry.measurement_matrix(xyc))
         sig2 = (sigma if sigma is not None else geometry.noise_level(xyc, rank=rank)) ** 2
         noise_regime, level = _noise_regime(X, starts["spectral"], inliers, rank, sig2)
