@@ -231,6 +231,40 @@ def test_humanoid_torso(seed):
         assert np.median(err) < 3.0
 
 
+def test_copies_of_one_trajectory_count_once():
+    rng = np.random.default_rng(0)
+    xy = rng.normal(size=(3, 20, 2))
+    copies = np.concatenate([xy, xy[:1], xy[:1]])  # 5 trajectories, 3 distinct
+    copies[3, :4] = np.nan  # a copy with a gap is still a copy
+    assert M._n_distinct(copies) == 3
+    assert M._n_distinct(xy[:1].repeat(2, axis=0)) == 1
+    apart = xy[:2].copy()
+    apart[0, 10:] = np.nan
+    apart[1, :10] = np.nan
+    assert M._n_distinct(apart) == 2  # never seen together: nothing says they coincide
+
+
+def test_segment_of_copies_is_dropped_not_fitted(monkeypatch):
+    # A BVH end site on its joint, or a C3D marker repeated unlabelled: a segment made of copies of
+    # one trajectory has no extent, so its similarity would be 0 / 0 and its joints NaN.
+    import warnings
+
+    from stickfigure import segmentation
+
+    traj = chain3(seed=0, frames=40)
+    xy = np.concatenate([traj.xy, traj.xy[:1], traj.xy[:1]])
+    lab = np.concatenate([traj.labels_true, [3, 3]])
+    with pytest.raises(ValueError, match="copies"):
+        sf.fit(xy, method="mi-tree", labels=lab)
+    monkeypatch.setattr(segmentation, "affinity_propagation_segments", lambda xy, random_state=None: lab)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        skel = sf.fit(xy, method="mi-tree", random_state=0)
+    assert skel.info["dropped_singletons"] == [3]
+    assert skel.n_sticks == 3 and np.all(skel.labels[-2:] == -1)
+    assert np.all(np.isfinite(skel.joints))
+
+
 def test_planar_random_figures_known_answer():
     hits = 0
     for seed in range(6):
