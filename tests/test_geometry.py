@@ -415,3 +415,16 @@ def test_hypothesis_scores_ignore_directions_the_members_do_not_span():
     for zz in (z, z_gram):
         assert np.all(zz[0, :3] < 1e-6)
         assert zz[0, 3] > 100.0
+
+
+def test_copies_of_one_trajectory_count_once():
+    rng = np.random.default_rng(0)
+    xy = rng.normal(size=(3, 20, 2))
+    copies = np.concatenate([xy, xy[:1], xy[:1]])  # 5 trajectories, 3 distinct
+    copies[3, :4] = np.nan  # a copy with a gap is still a copy
+    assert g._n_distinct_trajectories(copies) == 3
+    assert g._n_distinct_trajectories(xy[:1].repeat(2, axis=0)) == 1
+    apart = xy[:2].copy()
+    apart[0, 10:] = np.nan
+    apart[1, :10] = np.nan
+    assert g._n_distinct_trajectories(apart) == 2  # never seen together: nothing says they coincide

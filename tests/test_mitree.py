@@ -231,19 +231,6 @@ def test_humanoid_torso(seed):
         assert np.median(err) < 3.0
 
 
-def test_copies_of_one_trajectory_count_once():
-    rng = np.random.default_rng(0)
-    xy = rng.normal(size=(3, 20, 2))
-    copies = np.concatenate([xy, xy[:1], xy[:1]])  # 5 trajectories, 3 distinct
-    copies[3, :4] = np.nan  # a copy with a gap is still a copy
-    assert M._n_distinct(copies) == 3
-    assert M._n_distinct(xy[:1].repeat(2, axis=0)) == 1
-    apart = xy[:2].copy()
-    apart[0, 10:] = np.nan
-    apart[1, :10] = np.nan
-    assert M._n_distinct(apart) == 2  # never seen together: nothing says they coincide
-
-
 def test_segment_of_copies_is_dropped_not_fitted(monkeypatch):
     # A BVH end site on its joint, or a C3D marker repeated unlabelled: a segment made of copies of
     # one trajectory has no extent, so its similarity would be 0 / 0 and its joints NaN.

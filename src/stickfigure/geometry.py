@@ -1020,16 +1020,29 @@ def _coincident_representatives(dist: np.ndarray, rtol: float = 1e-6) -> np.ndar
     norm, so the tolerance is well above it.
     """
     P = dist.shape[0]
-    tol = rtol * max(float(np.max(dist, initial=0.0)), 1e-300)
-    same = dist <= tol
+    finite = np.isfinite(dist)
+    tol = rtol * max(float(np.max(dist[finite], initial=0.0)), 1e-300)
+    same = finite & (dist <= tol)  # inf: never seen together, nothing says they coincide
     return np.argmax(same | np.eye(P, dtype=bool), axis=1)
 
 
 def _n_distinct_trajectories(xy: np.ndarray) -> int:
-    """How many trajectories are not copies of another (:func:`_coincident_representatives`)."""
-    xy = _complete_for_affinity(xy)
-    W = measurement_matrix(xy)
-    return int(np.unique(_coincident_representatives(_trajectory_distances(W.T @ W, xy.shape[1]))).size)
+    """How many of the trajectories ``xy`` (P, F, D) are not copies of another
+    (:func:`_coincident_representatives`), NaN where missing.
+
+    Distances are RMS differences over the frames where both trajectories are seen
+    (infinite where none is), taken directly rather than from the Gram matrix: an
+    exact copy is then at distance 0 whatever the rounding of the products.
+    """
+    P = xy.shape[0]
+    if P < 2:
+        return P
+    dist = np.empty((P, P))
+    for i in range(P):  # one row at a time: (P, F, D) memory, not (P, P, F, D)
+        d = xy - xy[i]
+        both = np.isfinite(d).all(axis=-1).sum(axis=-1)
+        dist[i] = np.where(both > 0, np.sqrt(np.nansum(d * d, axis=(-1, -2)) / np.maximum(both, 1)), np.inf)
+    return int(np.unique(_coincident_representatives(dist)).size)
 
 
 def _best_local_sets(G: np.ndarray, dist: np.ndarray, points: np.ndarray, rank: int, n_candidates: int,

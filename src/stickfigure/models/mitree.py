@@ -235,25 +235,6 @@ class SPMPoses:
     rms: np.ndarray
 
 
-def _n_distinct(xy: np.ndarray) -> int:
-    """How many of the trajectories ``xy`` (n, F, 2) are not copies of another: RMS distance over
-    the frames where both are seen at most 1e-6 of the largest such distance
-    (:func:`stickfigure.geometry._coincident_representatives`); never seen together counts as distinct."""
-    from ..geometry import _coincident_representatives
-
-    n = xy.shape[0]
-    if n < 2:
-        return n
-    dist = np.empty((n, n))
-    for i in range(n):  # one row at a time: (n, F, 2) memory, not (n, n, F, 2)
-        d = xy - xy[i]
-        both = np.isfinite(d).all(axis=-1).sum(axis=-1)
-        dist[i] = np.where(both > 0, np.sqrt(np.nansum(d * d, axis=(-1, -2)) / np.maximum(both, 1)), np.inf)
-    finite = np.where(np.isfinite(dist), dist, 0.0)
-    rep = _coincident_representatives(np.where(np.isfinite(dist), dist, 2.0 * finite.max() + 1.0))
-    return int(np.unique(rep).size)
-
-
 def _fit_similarity(shape: np.ndarray, y: np.ndarray, vis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Batched similarity fit of a complex shape (n,) to observations y (F, n) -> a, b (F,)."""
     from ..geometry import similarity_fit_2d
@@ -940,13 +921,15 @@ class MITree(StickEstimator):
 
             lab = np.asarray(affinity_propagation_segments(traj.xy, random_state=rng), dtype=np.int64)
             source = "affinity_propagation"
+        from ..geometry import _n_distinct_trajectories
+
         ids = np.unique(lab[lab >= 0])
         if ids.size == 0:
             raise ValueError("labels assign no point to a segment")
         # Copies of one trajectory count once (a BVH end site on its joint, a C3D marker repeated
         # unlabelled): a segment of copies has no extent, so its similarity's scale and angle are
         # 0 / 0 in every frame, and NaN poses would reach the twists and the joints.
-        counts = np.array([_n_distinct(traj.xy[lab == s]) for s in ids])
+        counts = np.array([_n_distinct_trajectories(traj.xy[lab == s]) for s in ids])
         small = ids[counts < 2]
         if small.size and source == "given":
             raise ValueError(f"labels: segment {int(small[0])} has a single point (copies of one trajectory "
