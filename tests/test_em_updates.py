@@ -493,3 +493,32 @@ def test_split_round_after_a_dissolution_gives_a_segment_back_and_spares_small_s
     assert child.size == 1 and child[0] != s and np.sum(new.labels == child[0]) <= 3
     assert adjusted_rand_score(truth, new.labels) > 0.9
     assert new.n_sticks == 5 and len(S.stick_edges(new)[0]) == 1  # the pieces share their joint
+
+
+def test_a_stopped_run_leaves_the_generator_where_the_full_run_does(scene):
+    """``run_em(stop=...)`` ends at a check, and the resamplings it skipped are drawn anyway,
+    so the search after a stopped trial goes on as after a full one."""
+    st, obs, pri = _state(scene)
+    settings = S.EMSettings(tol=1e-12)  # no convergence stop in 60 sweeps
+    r_full, r_stop = np.random.default_rng(5), np.random.default_rng(5)
+    _, _, n_full = S.run_em(st.copy(), obs, pri, settings, 60, r_full)
+    seen = []
+    _, _, n_stop = S.run_em(st.copy(), obs, pri, settings, 60, r_stop,
+                            stop=lambda it, s, v: seen.append(it) or it >= 30)
+    assert (n_full, n_stop) == (60, 30) and seen == [10, 20, 30]
+    assert r_full.random() == r_stop.random()
+
+
+def test_out_of_reach_stops_only_a_trial_that_cannot_catch_up():
+    """The rise per block, however slow, is allowed twice over for every block left."""
+    crit = lambda st, v: v  # noqa: E731
+    # A rise of 100 a block, 17 blocks left: at most 400 + 2 x 1700 = 3800 at the end.
+    far = S.out_of_reach(1000.0, crit, 200)
+    assert [far(it, None, v) for it, v in ((10, 200.0), (20, 300.0), (30, 400.0))] == [False, False, False]
+    far = S.out_of_reach(5000.0, crit, 200)
+    assert [far(it, None, v) for it, v in ((10, 200.0), (20, 300.0), (30, 400.0))] == [False, False, True]
+    # A trial already rising fast enough is left to run; one above best is never stopped.
+    near = S.out_of_reach(3000.0, crit, 200)
+    assert not any(near(it, None, v) for it, v in ((10, 0.0), (20, 100.0), (30, 200.0), (40, 300.0)))
+    above = S.out_of_reach(0.0, crit, 200)
+    assert not any(above(it, None, v) for it, v in ((10, 5.0), (20, 5.0), (30, 5.0)))

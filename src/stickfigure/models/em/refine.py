@@ -592,9 +592,7 @@ def dissolve_small_sticks(st: StickState, obs: Observations, priors: Priors, set
     Returns the state, its objective, the EM sweeps run, and the point sets of the
     dissolved sticks.
     """
-    from .structure import run_em
-
-    from .structure import LOOSE_FACTOR
+    from .structure import LOOSE_FACTOR, out_of_reach, run_em
 
     best = criterion(st, value)
     trial_iter = settings.n_iter if trial_iter is None else trial_iter
@@ -614,7 +612,8 @@ def dissolve_small_sticks(st: StickState, obs: Observations, priors: Priors, set
         if _dissolve_loss(st, obs, priors, s) > LOOSE_FACTOR * 0.5 * 3 * obs.n_frames * logN:
             continue
         trial = dissolve_stick(st, obs, priors, s)
-        trial, val, n = run_em(trial, obs, priors, settings, trial_iter, rng)
+        trial, val, n = run_em(trial, obs, priors, settings, trial_iter, rng,
+                               stop=out_of_reach(best, criterion, trial_iter, settings.resample_every or 10))
         sweeps += n
         score = criterion(trial, val)
         if score > best:
@@ -814,7 +813,7 @@ def resplit_pairs(st: StickState, obs: Observations, priors: Priors, settings, r
     Returns the state, its objective, the EM sweeps run and the points moved.
     """
     from .assign import candidate_fits
-    from .structure import run_em, stick_edges
+    from .structure import out_of_reach, run_em, stick_edges
 
     best = criterion(st, value)
     tried: set[tuple] = set()
@@ -867,7 +866,8 @@ def resplit_pairs(st: StickState, obs: Observations, priors: Priors, settings, r
             # would hand the points back to the old compromise motions) and are compared with the
             # current model after as many sweeps; only a promising cut gets the usual run.
             trial, _, n0 = run_em(trial, obs, priors, settings, 2 * settings.n_iter_merge, rng, resample=False)
-            trial, val, n = run_em(trial, obs, priors, settings, trial_iter, rng)
+            trial, val, n = run_em(trial, obs, priors, settings, trial_iter, rng,
+                                   stop=out_of_reach(best, criterion, trial_iter, settings.resample_every or 10))
             sweeps += n0
             sweeps += n
             score = criterion(trial, val)

@@ -129,7 +129,7 @@ def reattach_subtrees(st: StickState, obs: Observations, priors: Priors, setting
     old link (stick numbers of the state at that move). A cut is tried once per
     kept move (``max_trials``, default twice the sticks, bounds the trials).
     """
-    from .structure import apply_merge, components, merge_candidates, run_em, score_candidates
+    from .structure import apply_merge, components, merge_candidates, out_of_reach, run_em, score_candidates
 
     E = st.ends_per_stick
     best = criterion(st, value)
@@ -165,7 +165,8 @@ def reattach_subtrees(st: StickState, obs: Observations, priors: Priors, setting
         if j in (c.j1, c.j2) and {x for x in sticks if comp[x] == comp[e // E]} == {int(e // E)}:
             continue  # the best is the old link (e's stick back on j): nothing to move
         trial = apply_merge(cut, c, priors, settings, blocks[b])
-        trial, val, n = run_em(trial, obs, priors, settings, settings.n_iter, rng)
+        trial, val, n = run_em(trial, obs, priors, settings, settings.n_iter, rng,
+                               stop=out_of_reach(best, criterion, settings.n_iter, settings.resample_every or 10))
         sweeps += n
         score = criterion(trial, val)
         if score > best:
