@@ -170,12 +170,13 @@ def out_of_reach(best: float, criterion: Callable[[StickState, float], float], n
     The trials of the refinements (a dissolved stick, a re-split pair, a moved
     sub-tree) are kept only when ``criterion(state, objective)`` ends above the
     current model's, and most end thousands of BIC units below it (human-sized
-    figures: 2 400-28 000 after the full ``n_iter`` sweeps). The criterion's rise
-    per ``check`` sweeps slows as EM converges, so from the last block's rise
-    (the larger of the last two, against a resampling's jump) the rest of the
-    run adds at most ``blocks left x rise``; the trial stops when even ``safety``
-    times that leaves it below ``best``. Never before three checks (the first
-    blocks' rise is the fastest).
+    figures: 460-28 100 after the full ``n_iter`` sweeps). The criterion's rise
+    per ``check`` sweeps does not grow as EM goes on (measured: it slows or holds,
+    resampling jumps aside), so from the last block's rise (the larger of the
+    last two, against such a jump) the rest of the run adds at most
+    ``blocks left x rise``; the trial stops when even ``safety`` times that
+    leaves it below ``best``. Never before three checks (the first blocks' rise
+    is the fastest).
     """
     hist: list[float] = []
 
