@@ -504,21 +504,24 @@ def test_a_stopped_run_leaves_the_generator_where_the_full_run_does(scene):
     _, _, n_full = S.run_em(st.copy(), obs, pri, settings, 60, r_full)
     seen = []
     _, _, n_stop = S.run_em(st.copy(), obs, pri, settings, 60, r_stop,
-                            stop=lambda it, s, v: seen.append(it) or it >= 30)
-    assert (n_full, n_stop) == (60, 30) and seen == [10, 20, 30]
+                            stop=lambda it, left, s, v: seen.append((it, left)) or it >= 30)
+    assert (n_full, n_stop) == (60, 30) and seen == [(10, 50), (20, 40), (30, 30)]
     assert r_full.random() == r_stop.random()
 
 
 def test_out_of_reach_stops_only_a_trial_that_cannot_catch_up():
     """The rise per block, however slow, is allowed twice over for every block left."""
     crit = lambda st, v: v  # noqa: E731
+
+    def calls(stop, values):  # checks every 10 sweeps of a 200-sweep run
+        return [stop(10 * (k + 1), 200 - 10 * (k + 1), None, v) for k, v in enumerate(values)]
+
     # A rise of 100 a block, 17 blocks left: at most 400 + 2 x 1700 = 3800 at the end.
-    far = S.out_of_reach(1000.0, crit, 200)
-    assert [far(it, None, v) for it, v in ((10, 200.0), (20, 300.0), (30, 400.0))] == [False, False, False]
-    far = S.out_of_reach(5000.0, crit, 200)
-    assert [far(it, None, v) for it, v in ((10, 200.0), (20, 300.0), (30, 400.0))] == [False, False, True]
+    assert calls(S.out_of_reach(1000.0, crit), (200.0, 300.0, 400.0)) == [False, False, False]
+    assert calls(S.out_of_reach(5000.0, crit), (200.0, 300.0, 400.0)) == [False, False, True]
     # A trial already rising fast enough is left to run; one above best is never stopped.
-    near = S.out_of_reach(3000.0, crit, 200)
-    assert not any(near(it, None, v) for it, v in ((10, 0.0), (20, 100.0), (30, 200.0), (40, 300.0)))
-    above = S.out_of_reach(0.0, crit, 200)
-    assert not any(above(it, None, v) for it, v in ((10, 5.0), (20, 5.0), (30, 5.0)))
+    assert not any(calls(S.out_of_reach(3000.0, crit), (0.0, 100.0, 200.0, 300.0)))
+    assert not any(calls(S.out_of_reach(0.0, crit), (5.0, 5.0, 5.0)))
+    # The block is measured between checks: the same rise over 20-sweep blocks is half the rate.
+    slow = S.out_of_reach(3000.0, crit)
+    assert [slow(d, 200 - d, None, v) for d, v in ((20, 200.0), (40, 300.0), (60, 400.0))] == [False, False, True]

@@ -613,7 +613,7 @@ def dissolve_small_sticks(st: StickState, obs: Observations, priors: Priors, set
             continue
         trial = dissolve_stick(st, obs, priors, s)
         trial, val, n = run_em(trial, obs, priors, settings, trial_iter, rng,
-                               stop=out_of_reach(best, criterion, trial_iter, settings.resample_every or 10))
+                               stop=out_of_reach(best, criterion))
         sweeps += n
         score = criterion(trial, val)
         if score > best:
@@ -867,7 +867,7 @@ def resplit_pairs(st: StickState, obs: Observations, priors: Priors, settings, r
             # current model after as many sweeps; only a promising cut gets the usual run.
             trial, _, n0 = run_em(trial, obs, priors, settings, 2 * settings.n_iter_merge, rng, resample=False)
             trial, val, n = run_em(trial, obs, priors, settings, trial_iter, rng,
-                                   stop=out_of_reach(best, criterion, trial_iter, settings.resample_every or 10))
+                                   stop=out_of_reach(best, criterion))
             sweeps += n0
             sweeps += n
             score = criterion(trial, val)

@@ -124,13 +124,13 @@ def child_rng(rng: np.random.Generator) -> np.random.Generator:
 def run_em(st: StickState, obs: Observations, priors: Priors, settings: EMSettings, n_iter: int,
            rng: np.random.Generator, *, resample: bool = True, precisions: bool = True,
            local: bool = True, min_iter: int = 30,
-           stop: Callable[[int, StickState, float], bool] | None = None) -> tuple[StickState, float, int]:
+           stop: Callable[[int, int, StickState, float], bool] | None = None) -> tuple[StickState, float, int]:
     """Up to ``n_iter`` EM sweeps, resampling R every ``settings.resample_every`` (not after the last).
 
     With ``settings.tol > 0`` the run stops early (never before ``min_iter`` sweeps)
-    once converged. ``stop(sweeps_done, state, objective)``, called at every
-    convergence check (with ``settings.tol > 0``), ends the run when it returns
-    True (a trial that can no longer win, :func:`refine.dissolve_small_sticks`).
+    once converged. ``stop(sweeps_done, sweeps_left, state, objective)``, called at
+    every convergence check (with ``settings.tol > 0``), ends the run when it returns
+    True (a trial that can no longer win, :func:`out_of_reach`).
     Returns the state, its objective and the number of sweeps done.
     """
     every = settings.resample_every if resample and settings.resample_every else 0
@@ -150,7 +150,7 @@ def run_em(st: StickState, obs: Observations, priors: Priors, settings: EMSettin
                 if (prev is not None and it >= min_iter and changed <= settled
                         and abs(cur - prev) <= settings.tol * abs(cur)):
                     break
-                if stop is not None and stop(it, st, cur):
+                if stop is not None and stop(it, n_iter - it, st, cur):
                     if every and settings.resample == "sample":
                         # Draw what the rest of the run's resamplings would have drawn, so that
                         # the search after a stopped trial goes on as after a full one.
@@ -163,29 +163,30 @@ def run_em(st: StickState, obs: Observations, priors: Priors, settings: EMSettin
     return st, objective(st, obs, priors), it
 
 
-def out_of_reach(best: float, criterion: Callable[[StickState, float], float], n_iter: int,
-                 check: int = 10, safety: float = 2.0) -> Callable[[int, StickState, float], bool]:
+def out_of_reach(best: float, criterion: Callable[[StickState, float], float],
+                 safety: float = 2.0) -> Callable[[int, int, StickState, float], bool]:
     """A ``stop`` for :func:`run_em` that ends a trial which can no longer beat ``best``.
 
     The trials of the refinements (a dissolved stick, a re-split pair, a moved
     sub-tree) are kept only when ``criterion(state, objective)`` ends above the
     current model's, and most end thousands of BIC units below it (human-sized
-    figures: 460-28 100 after the full ``n_iter`` sweeps). The criterion's rise
-    per ``check`` sweeps does not grow as EM goes on (measured: it slows or holds,
+    figures: 460-28 100 after the full run). The criterion's rise per block of
+    sweeps between checks does not grow as EM goes on (measured: it slows or holds,
     resampling jumps aside), so from the last block's rise (the larger of the
     last two, against such a jump) the rest of the run adds at most
     ``blocks left x rise``; the trial stops when even ``safety`` times that
     leaves it below ``best``. Never before three checks (the first blocks' rise
     is the fastest).
     """
-    hist: list[float] = []
+    hist: list[tuple[int, float]] = []  # (sweeps done, criterion) at each check
 
-    def stop(it: int, st: StickState, value: float) -> bool:
-        hist.append(criterion(st, value))
+    def stop(done: int, left: int, st: StickState, value: float) -> bool:
+        hist.append((done, criterion(st, value)))
         if len(hist) < 3:
             return False
-        rise = max(hist[-1] - hist[-2], hist[-2] - hist[-3], 0.0)
-        return hist[-1] + safety * rise * (n_iter - it) / check < best
+        (_, c3), (i2, c2), (i1, c1) = hist[-3:]
+        rise = max(c1 - c2, c2 - c3, 0.0)
+        return c1 + safety * rise * left / (i1 - i2) < best
 
     return stop
 

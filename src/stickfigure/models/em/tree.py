@@ -166,7 +166,7 @@ def reattach_subtrees(st: StickState, obs: Observations, priors: Priors, setting
             continue  # the best is the old link (e's stick back on j): nothing to move
         trial = apply_merge(cut, c, priors, settings, blocks[b])
         trial, val, n = run_em(trial, obs, priors, settings, settings.n_iter, rng,
-                               stop=out_of_reach(best, criterion, settings.n_iter, settings.resample_every or 10))
+                               stop=out_of_reach(best, criterion))
         sweeps += n
         score = criterion(trial, val)
         if score > best:
