@@ -66,7 +66,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from .assign import resample_assignments
+from .assign import resample_assignments, skip_resamplings
 from .model import Ghosts, Observations, Priors, StickState, chain_degree, objective, objective_terms
 from .updates import em_sweep, update_endpoints
 
@@ -151,10 +151,9 @@ def run_em(st: StickState, obs: Observations, priors: Priors, settings: EMSettin
                         and abs(cur - prev) <= settings.tol * abs(cur)):
                     break
                 if stop is not None and stop(it, n_iter - it, st, cur):
-                    if every and settings.resample == "sample":
-                        # Draw what the rest of the run's resamplings would have drawn, so that
-                        # the search after a stopped trial goes on as after a full one.
-                        rng.gumbel(size=(len(range(it, n_iter, every)), obs.n_points, st.n_sticks))
+                    if every:  # what the rest of the run's resamplings would have drawn
+                        skip_resamplings(rng, len(range(it, n_iter, every)), obs.n_points, st.n_sticks,
+                                         settings.resample)
                     break
                 prev = cur
             if every:
