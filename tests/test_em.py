@@ -363,7 +363,7 @@ def test_finer_start_recovers_parts_the_clustering_merged():
     # this process, it gives the same skeleton: it draws from its own generator.
     import multiprocessing
 
-    from stickfigure.models.em.starts import _fork_context
+    from stickfigure.models.em.forked import _fork_context
 
     assert sk.info["second_start_parallel"] == (_fork_context() is not None)
     assert not multiprocessing.active_children()

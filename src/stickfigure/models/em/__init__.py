@@ -32,8 +32,8 @@ from ..base import StickEstimator, register
 from .impute import refit_motions, rotation_concentration, start_state
 from .initialise import fill_gaps, initial_state
 from .model import Observations, Priors, StickState, normalise
+from .forked import Speculative
 from .refine import misfit_ratios
-from .starts import Speculative
 from .structure import (EMSettings, Stage, bic, child_rng, extend_frames, learn_structure, run_em,
                         search_frames, stick_edges)
 
@@ -220,11 +220,12 @@ class EMSkeleton(StickEstimator):
         any four trajectories), which no later move splits apart again. None: one
         start (the paper).
     n_jobs : int, optional
-        Processes for the two starts. With more than one, the finer start's search
-        runs beside the first one in a forked process (Linux) and is stopped as soon
-        as the first shows it is not needed: on two cores the fit then takes as long
-        as the longer search, not both. The result does not depend on it. None: the
-        CPUs this process may use.
+        Processes for the search. With more than one (Linux, forked processes):
+        the finer start's search runs beside the first one, at a lower priority, and
+        is stopped as soon as the first shows it is not needed; the trial that
+        follows a rejected refinement trial runs beside it; and half of the merge
+        and split candidates' block fits run in a child. The result does not depend
+        on it. None: the CPUs this process may use.
     tau_p, alpha0, beta0, max_precision : float
         Priors (normalised units: the data are centred and scaled to unit RMS
         spread): precision of the Gaussian prior on local coordinates; Gamma prior
@@ -441,6 +442,10 @@ OVERSEGMENT_MISFIT = 1.35
 # ... or when its sticks hold more than this many points on average (HDM05's 41 markers in 4
 # sticks fit at 1.28: the lower quartile of 4 bad sticks is no noise level).
 OVERSEGMENT_SIZE = 10.0
+# The speculative second search runs at this lower priority (os.nice): on the human-sized
+# random figures it is thrown away on 2 of 4 seeds, while the first search's speculative
+# trials (trials.py), forked beside it, are needed whenever the trial before them loses.
+SECOND_START_NICE = 19
 
 
 def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np.random.Generator, *,
@@ -459,9 +464,12 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
     starts from ``ceil(P / oversegment)`` groups and the start whose selected stage
     has the higher BIC (on the same frames) is kept (``info0["starts"]``). With
     ``n_jobs`` > 1 (None: the CPUs available) the second search starts at once in
-    a forked process and is stopped when the first shows it is not needed
-    (:mod:`.starts`); the result is the same either way.
+    a forked process and is stopped when the first shows it is not needed, and
+    the searches run some of their work in forked children (:mod:`.forked`); the
+    result is the same either way.
     """
+    n_jobs = available_cpus() if n_jobs is None else n_jobs
+    settings = replace(settings, n_jobs=n_jobs)
     obs_all, centre, scale = normalise(traj.xy)
     frames = search_frames(obs_all.mask > 0, max_frames)
     obs = obs_all if frames is None else obs_all.take_frames(frames)
@@ -514,9 +522,9 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
         # runs beside the first search (a forked process, started before the first search
         # knows whether it is needed) or after it; spawning does not advance rng's stream.
         rng_fine = child_rng(rng)
-        n_jobs = available_cpus() if n_jobs is None else n_jobs
         second = Speculative(lambda: search(starts[1], rng_fine, 1, show=False), parallel=n_jobs > 1,
-                             here=lambda: search(starts[1], rng_fine, 1), name="the second structure search")
+                             here=lambda: search(starts[1], rng_fine, 1), name="the second structure search",
+                             nice=SECOND_START_NICE)
     with second:
         runs.append(search(starts[0], rng, 0))
         stages, selected, _ = runs[0]

@@ -250,7 +250,7 @@ def _split_block(st: StickState, obs: Observations, s: int, second: np.ndarray,
 def articulated_split_candidates(st: StickState, obs: Observations, priors: Priors, *, n_sweeps: int = 40,
                                  n_finalists: int = 5, max_frames: int = 240, skip: set[int] | None = None,
                                  var: float | None = None, return_gain: bool = False,
-                                 n_axes: int = 1) -> list[tuple]:
+                                 n_axes: int = 1, n_jobs: int = 1) -> list[tuple]:
     """Sticks that are two parts joined by a joint: [(stick, 0/1 labels of its points)].
 
     The split check above needs two rigid halves of at least four points each
@@ -270,7 +270,10 @@ def articulated_split_candidates(st: StickState, obs: Observations, priors: Prio
     stick are fitted again for ``3 n_sweeps`` sweeps, and the best of those is kept when ``(RSS_one - RSS_two) / (2 sigma^2) > k/2 log N``.
     ``var``: the noise variance ``sigma^2`` (default: :func:`noise_variance` of ``st``).
     ``return_gain``: also return each split's gain ``(RSS_one - RSS_two) / (2 sigma^2)``.
+    ``n_jobs`` > 1: half of the candidates are fitted in a forked child (:func:`.forked.in_halves`;
+    the same numbers).
     """
+    from .forked import in_halves
     from .structure import _union
 
     rss, var0 = noise_variance(st, obs, priors)
@@ -315,13 +318,18 @@ def articulated_split_candidates(st: StickState, obs: Observations, priors: Prio
         return []
     one_rss = sub.design(sobs).residual_sq(sub.rot, sub.trans, sub.local)
 
-    def gains(chosen: list[int], sweeps: int) -> np.ndarray:
+    def split_rss(chosen: list[int], sweeps: int) -> list[float]:
         u, uobs, sb, _ = _union([blocks[c] for c in chosen])
         for it in range(sweeps):
             em_sweep(u, uobs, priors, precisions=False, global_rotations=it % 10 == 0, use_polar=False)
         per = u.design(uobs).residual_sq(u.rot, u.trans, u.local)
-        split_rss = np.bincount(sb, weights=per, minlength=len(chosen))
-        return np.array([(one_rss[owners[c][0]] - r) * (F / Fs) / (2.0 * var) for c, r in zip(chosen, split_rss)])
+        return np.bincount(sb, weights=per, minlength=len(chosen)).tolist()
+
+    def gains(chosen: list[int], sweeps: int) -> np.ndarray:
+        # The blocks are independent: half of them in a forked child (the same numbers).
+        rss2 = in_halves(lambda part: split_rss(part, sweeps), chosen, parallel=n_jobs > 1,
+                         weights=[blocks[c][1].w.size for c in chosen])
+        return np.array([(one_rss[owners[c][0]] - r) * (F / Fs) / (2.0 * var) for c, r in zip(chosen, rss2)])
 
     # Screen every candidate with n_sweeps sweeps; the best few of each stick are fitted for
     # three times as long before one is chosen (a right split can converge more slowly).
@@ -588,38 +596,51 @@ def dissolve_small_sticks(st: StickState, obs: Observations, priors: Priors, set
     With ``scope="leaves"`` only sticks with at most one joint are tried: a stick
     between two joints (a thigh, between the pelvis and the shin) is kept, because
     once it is gone no link of the part below it is right (docs/em.md section 11).
+    The trials are greedy (:func:`.trials.greedy_trials`: each draws from its own
+    generator spawned from ``rng``; with ``settings.n_jobs`` > 1 the trial that
+    follows a loss runs beside the current one).
 
     Returns the state, its objective, the EM sweeps run, and the point sets of the
     dissolved sticks.
     """
     from .structure import LOOSE_FACTOR, out_of_reach, run_em
+    from .trials import greedy_trials
 
-    best = criterion(st, value)
+    cur = {"st": st, "value": value, "best": criterion(st, value)}
     trial_iter = settings.n_iter if trial_iter is None else trial_iter
     logN = float(np.log(obs.mask.sum() * obs.n_dims))
-    tried: set[tuple[int, ...]] = set()
     done: list[list[int]] = []
     sweeps = 0
-    while st.n_sticks > 1:
-        nxt = _next_small_stick(st, np.argsort(np.bincount(st.labels, minlength=st.n_sticks), kind="stable"),
-                                max_points, tried, scope)
-        if nxt is None:
-            break
-        s, key = nxt
-        # Cheap test first: the points' fit on their best other sticks (motions fixed, local
-        # coordinates refitted) may lose at most LOOSE_FACTOR times the parameters saved
-        # (a real segment's points fit the other sticks far worse).
-        if _dissolve_loss(st, obs, priors, s) > LOOSE_FACTOR * 0.5 * 3 * obs.n_frames * logN:
-            continue
-        trial = dissolve_stick(st, obs, priors, s)
-        trial, val, n = run_em(trial, obs, priors, settings, trial_iter, rng,
-                               stop=out_of_reach(best, criterion))
+
+    def propose(tried: set) -> tuple[int, tuple[int, ...]] | None:
+        now = cur["st"]
+        while now.n_sticks > 1:
+            nxt = _next_small_stick(now, np.argsort(np.bincount(now.labels, minlength=now.n_sticks), kind="stable"),
+                                    max_points, tried, scope)
+            # Cheap test first: the points' fit on their best other sticks (motions fixed, local
+            # coordinates refitted) may lose at most LOOSE_FACTOR times the parameters saved
+            # (a real segment's points fit the other sticks far worse).
+            if nxt is None or _dissolve_loss(now, obs, priors, nxt[0]) <= LOOSE_FACTOR * 0.5 * 3 * obs.n_frames * logN:
+                return nxt
+        return None
+
+    def run(nxt: tuple[int, tuple[int, ...]], r: np.random.Generator) -> tuple[StickState, float, int]:
+        trial = dissolve_stick(cur["st"], obs, priors, nxt[0])
+        return run_em(trial, obs, priors, settings, trial_iter, r, stop=out_of_reach(cur["best"], criterion))
+
+    def judge(nxt: tuple[int, tuple[int, ...]], result: tuple[StickState, float, int]) -> bool:
+        nonlocal sweeps
+        trial, val, n = result
         sweeps += n
         score = criterion(trial, val)
-        if score > best:
-            st, value, best = trial, val, score
-            done.append([int(p) for p in key])
-    return st, value, sweeps, done
+        if score <= cur["best"]:
+            return False
+        cur.update(st=trial, value=val, best=score)
+        done.append([int(p) for p in nxt[1]])
+        return True
+
+    greedy_trials(propose, run, judge, rng, parallel=settings.n_jobs > 1)
+    return cur["st"], cur["value"], sweeps, done
 
 
 def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings, rng: np.random.Generator,
@@ -667,6 +688,10 @@ def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings
     (true rigid 3-point parts of random figures measured 0.5-7.7), only a sign of
     it: the sticks that fit well are spared, the rest offered (docs/em.md sections 6
     and 11).
+    The masks are drawn from ``rng``; the trials are greedy
+    (:func:`.trials.greedy_trials`: each draws from its own generator spawned from
+    ``rng``; with ``settings.n_jobs`` > 1 the trial that follows a loss runs beside
+    the current one).
 
     Returns the state, its objective, the EM sweeps run, the point sets of the
     dissolved sticks, and ``{"fraction", "error_before", "error_after"}`` (RMS per
@@ -674,6 +699,7 @@ def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings
     """
     from .impute import heldout_error
     from .structure import run_em
+    from .trials import greedy_trials
 
     n_masks = check_positive(n_masks, "n_masks", integer=True)
     if not np.any(np.bincount(st.labels, minlength=st.n_sticks) <= max_points):  # nothing to try
@@ -693,38 +719,51 @@ def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings
         return sum(heldout_error(state, obs, priors, settings, h) for h in masks)
 
     err = first = errors(st)
-    tried: set[tuple[int, ...]] = set()
+    cur = {"st": st, "value": value, "err": err}
     done: list[list[int]] = []
     sweeps = 0
-    while st.n_sticks > 1:
+
+    def propose(tried: set) -> tuple[int, tuple[int, ...]] | None:
+        now, err = cur["st"], cur["err"]
+        if now.n_sticks <= 1:
+            return None
         # The worst-predicted stick first: a stick that pairs markers across the body also
         # spoils the prediction of the sticks jointed to it, which may be right.
-        worst = np.bincount(st.labels, weights=err, minlength=st.n_sticks) / np.maximum(
-            np.bincount(st.labels, weights=n_hid, minlength=st.n_sticks), 1)
+        worst = np.bincount(now.labels, weights=err, minlength=now.n_sticks) / np.maximum(
+            np.bincount(now.labels, weights=n_hid, minlength=now.n_sticks), 1)
         order = np.argsort(-worst, kind="stable")
         if free_points is not None and free_points < max_points:
-            fits = (np.bincount(st.labels, minlength=st.n_sticks) <= free_points) | (
-                misfit_ratios(st, obs, priors) > suspect_ratio)
+            fits = (np.bincount(now.labels, minlength=now.n_sticks) <= free_points) | (
+                misfit_ratios(now, obs, priors) > suspect_ratio)
             order = order[fits[order]]
-        nxt = _next_small_stick(st, order, max_points, tried, scope)
-        if nxt is None:
-            break
-        s, key = nxt
-        trial = dissolve_stick(st, obs, priors, s)
-        trial, val, n = run_em(trial, obs, priors, settings, trial_iter, rng)
+        return _next_small_stick(now, order, max_points, tried, scope)
+
+    def run(nxt: tuple[int, tuple[int, ...]], r: np.random.Generator) -> tuple[StickState, float, int, np.ndarray]:
+        trial = dissolve_stick(cur["st"], obs, priors, nxt[0])
+        trial, val, n = run_em(trial, obs, priors, settings, trial_iter, r)
+        return trial, val, n, errors(trial)
+
+    def judge(nxt: tuple[int, tuple[int, ...]], result: tuple[StickState, float, int, np.ndarray]) -> bool:
+        nonlocal sweeps
+        trial, val, n, e = result
         sweeps += n
-        e = errors(trial)
-        pts = np.array(key)
+        err = cur["err"]
+        pts = np.array(nxt[1])
         near = np.isin(trial.labels, trial.labels[pts]) | np.isin(np.arange(obs.n_points), pts)
         # Both the stick's own points and the near set must be predicted better: a small
         # true segment (a shin, the pelvis) whose own points its dissolution predicts worse
         # can still lower the near set's error through the EM re-run of the sticks taking
         # them, and that is no evidence against the stick. (A stick none of whose entries the
         # masks hid is therefore kept: nothing measures it.)
-        if (e[near].sum() < (1.0 - margin) * err[near].sum()
+        if not (e[near].sum() < (1.0 - margin) * err[near].sum()
                 and e[pts].sum() < (1.0 - margin) * err[pts].sum()):
-            st, value, err = trial, val, e
-            done.append([int(p) for p in key])
+            return False
+        cur.update(st=trial, value=val, err=e)
+        done.append([int(p) for p in nxt[1]])
+        return True
+
+    greedy_trials(propose, run, judge, rng, parallel=settings.n_jobs > 1)
+    st, value, err = cur["st"], cur["value"], cur["err"]
     info = {"fraction": float(fraction), "error_before": float(np.sqrt(first.sum() / n_hidden)),
             "error_after": float(np.sqrt(err.sum() / n_hidden))}
     return st, value, sweeps, done, info
@@ -762,7 +801,8 @@ def articulated_split_round(st: StickState, obs: Observations, priors: Priors, s
 
     sizes = np.bincount(st.labels, minlength=st.n_sticks)
     skip = set(np.flatnonzero((sizes < min_points) | ~free_end_sticks(st)).tolist())
-    splits = articulated_split_candidates(st, obs, priors, n_axes=settings.split_axes, skip=skip)
+    splits = articulated_split_candidates(st, obs, priors, n_axes=settings.split_axes, skip=skip,
+                                          n_jobs=settings.n_jobs)
     if not splits:
         return st, None, 0, []
     new = apply_articulated_splits(st, obs, priors, splits)
@@ -810,71 +850,86 @@ def resplit_pairs(st: StickState, obs: Observations, priors: Priors, settings, r
     random figures: sticks holding points of two parts 1.4-3.5, clean sticks
     0.95-1.34, mostly below 1.15), the most suspect first, each once per point
     sets, and at most ``max_trials`` (default: the number of sticks) in all.
+    The trials are greedy (:func:`.trials.greedy_trials`: each draws from its own
+    generator spawned from ``rng``; with ``settings.n_jobs`` > 1 the trial that
+    follows a loss runs beside the current one).
     Returns the state, its objective, the EM sweeps run and the points moved.
     """
     from .assign import candidate_fits
     from .structure import out_of_reach, run_em, stick_edges
+    from .trials import greedy_trials
 
-    best = criterion(st, value)
-    tried: set[tuple] = set()
-    sweeps = moved = trials = 0
     max_trials = st.n_sticks if max_trials is None else max_trials
     trial_iter = settings.n_iter if trial_iter is None else trial_iter
-    changed = True
-    while changed:
-        changed = False
-        edges, _ = stick_edges(st)
-        rss, var = noise_variance(st, obs, priors)
-        ratio = misfit_ratios(st, obs, priors)
+    cur = {"st": st, "value": value, "best": criterion(st, value)}
+    sweeps = moved = 0
+
+    def propose(tried: set) -> tuple[int, int] | None:
+        now = cur["st"]
+        edges, _ = stick_edges(now)
+        ratio = misfit_ratios(now, obs, priors)
         # The most suspect pairs first; at most max_trials fits in all (each costs an EM run).
         for a, b in sorted(edges, key=lambda e: -max(ratio[e[0]], ratio[e[1]])):
-            if max(ratio[a], ratio[b]) <= suspect_ratio or trials >= max_trials:
-                break
-            ia, ib = np.flatnonzero(st.labels == a), np.flatnonzero(st.labels == b)
-            key = (tuple(ia), tuple(ib))
-            if key in tried:
-                continue
-            tried.add(key)
-            U = np.concatenate([ia, ib])
-            sub = obs.take(U)
-            one = initial_state(sub, np.zeros(U.size, np.int64), 1, priors, rng, n_ends=2)
-            for it in range(60):
-                em_sweep(one, sub, priors, global_rotations=it % 10 == 0, use_polar=it == 0)
-            splits = articulated_split_candidates(one, sub, priors, var=var, return_gain=True,
-                                                  n_axes=settings.split_axes)
-            trials += 1
-            if not splits:
-                continue
-            second = splits[0][1].astype(bool)
-            # The cut must fit the pair's points better than the two sticks do now (cheap test
-            # before the EM run): the union's one-body residual less the split's gain.
-            one_rss = float(one.design(sub).residual_sq(one.rot, one.trans, one.local)[0])
-            if one_rss - 2.0 * var * splits[0][2] >= rss[a] + rss[b]:
-                continue
-            in_a = np.isin(U, ia)
-            if (second & in_a).sum() > (~second & in_a).sum():
-                second = ~second
-            if set(U[second].tolist()) == set(ib.tolist()):
-                continue
-            trial = st.copy()
-            trial.labels[U[~second]] = a
-            trial.labels[U[second]] = b
-            pts = U[trial.labels[U] != st.labels[U]]
-            loc, _ = candidate_fits(st, obs, priors)
-            trial.local[pts] = loc[pts, trial.labels[pts]]
-            # The motions and joints first settle to the new point sets (a resampling right away
-            # would hand the points back to the old compromise motions) and are compared with the
-            # current model after as many sweeps; only a promising cut gets the usual run.
-            trial, _, n0 = run_em(trial, obs, priors, settings, 2 * settings.n_iter_merge, rng, resample=False)
-            trial, val, n = run_em(trial, obs, priors, settings, trial_iter, rng,
-                                   stop=out_of_reach(best, criterion))
-            sweeps += n0
-            sweeps += n
-            score = criterion(trial, val)
-            # Kept only when points really moved (not for the objective's slow creep alone).
-            if score > best and np.any(trial.labels[U] != st.labels[U]):
-                st, value, best = trial, val, score
-                moved += int(pts.size)
-                changed = True
-                break
-    return st, value, sweeps, moved
+            if max(ratio[a], ratio[b]) <= suspect_ratio or len(tried) >= max_trials:
+                return None
+            key = (tuple(np.flatnonzero(now.labels == a)), tuple(np.flatnonzero(now.labels == b)))
+            if key not in tried:
+                tried.add(key)
+                return int(a), int(b)
+        return None
+
+    def run(pair: tuple[int, int], r: np.random.Generator) -> tuple[StickState, float, int, int] | None:
+        now = cur["st"]
+        a, b = pair
+        rss, var = noise_variance(now, obs, priors)
+        ia, ib = np.flatnonzero(now.labels == a), np.flatnonzero(now.labels == b)
+        U = np.concatenate([ia, ib])
+        sub = obs.take(U)
+        one = initial_state(sub, np.zeros(U.size, np.int64), 1, priors, r, n_ends=2)
+        for it in range(60):
+            em_sweep(one, sub, priors, global_rotations=it % 10 == 0, use_polar=it == 0)
+        splits = articulated_split_candidates(one, sub, priors, var=var, return_gain=True,
+                                              n_axes=settings.split_axes)
+        if not splits:
+            return None
+        second = splits[0][1].astype(bool)
+        # The cut must fit the pair's points better than the two sticks do now (cheap test
+        # before the EM run): the union's one-body residual less the split's gain.
+        one_rss = float(one.design(sub).residual_sq(one.rot, one.trans, one.local)[0])
+        if one_rss - 2.0 * var * splits[0][2] >= rss[a] + rss[b]:
+            return None
+        in_a = np.isin(U, ia)
+        if (second & in_a).sum() > (~second & in_a).sum():
+            second = ~second
+        if set(U[second].tolist()) == set(ib.tolist()):
+            return None
+        trial = now.copy()
+        trial.labels[U[~second]] = a
+        trial.labels[U[second]] = b
+        pts = U[trial.labels[U] != now.labels[U]]
+        loc, _ = candidate_fits(now, obs, priors)
+        trial.local[pts] = loc[pts, trial.labels[pts]]
+        # The motions and joints first settle to the new point sets (a resampling right away
+        # would hand the points back to the old compromise motions) and are compared with the
+        # current model after as many sweeps; only a promising cut gets the usual run.
+        trial, _, n0 = run_em(trial, obs, priors, settings, 2 * settings.n_iter_merge, r, resample=False)
+        trial, val, n = run_em(trial, obs, priors, settings, trial_iter, r, stop=out_of_reach(cur["best"], criterion))
+        return trial, val, n0 + n, int(pts.size)
+
+    def judge(pair: tuple[int, int], result: tuple[StickState, float, int, int] | None) -> bool:
+        nonlocal sweeps, moved
+        if result is None:
+            return False
+        trial, val, n, n_moved = result
+        sweeps += n
+        U = np.flatnonzero(np.isin(cur["st"].labels, pair))
+        score = criterion(trial, val)
+        # Kept only when points really moved (not for the objective's slow creep alone).
+        if score <= cur["best"] or not np.any(trial.labels[U] != cur["st"].labels[U]):
+            return False
+        cur.update(st=trial, value=val, best=score)
+        moved += n_moved
+        return True
+
+    greedy_trials(propose, run, judge, rng, parallel=settings.n_jobs > 1)
+    return cur["st"], cur["value"], sweeps, moved

@@ -67,6 +67,7 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 from .assign import resample_assignments, skip_resamplings
+from .forked import in_halves
 from .model import Ghosts, Observations, Priors, StickState, chain_degree, objective, objective_terms
 from .updates import em_sweep, update_endpoints
 
@@ -109,6 +110,8 @@ class EMSettings:
     split_dissolved: int = 4
     reattach: bool = True
     max_trees: int | None = None
+    # Processes the search may use (forked.py); the result does not depend on it.
+    n_jobs: int = 1
 
 
 def child_rng(rng: np.random.Generator) -> np.random.Generator:
@@ -646,13 +649,13 @@ def score_candidates(st: StickState, obs: Observations, priors: Priors, settings
         before = float(ps[sticks].sum() + pv[maps["verts"]].sum())
         # After merge_vertices the merged vertex keeps index j1 (j1 < j2).
         prepared.append((idx, sub, sobs, maps, before, local_c.j1))
-    batch: list = []
-    size = 0
-    for item in prepared + [None]:
-        if item is not None:
-            batch.append(item)
-            size += item[2].w.size
-        if batch and (item is None or size >= settings.batch_size):
+
+    def fit(items: list) -> list[tuple[float, StickState]]:
+        """The blocks' EM runs, batched into disjoint unions of about ``batch_size`` entries
+        (a block's fit does not depend on the blocks beside it); (objective after, block state)."""
+        out: list[tuple[float, StickState]] = []
+        for lo, hi in _chunks([it[2].w.size for it in items], settings.batch_size):
+            batch = items[lo:hi]
             u, uobs, sb, vb = _union([(it[1], it[2]) for it in batch])
             if settings.merge_init == "joint" and settings.n_polish:
                 offs = np.concatenate([[0], np.cumsum([it[1].n_vertices for it in batch])])
@@ -665,8 +668,6 @@ def score_candidates(st: StickState, obs: Observations, priors: Priors, settings
                                                                                       minlength=len(batch))
             so = vo = po = 0
             for r, (idx, sub, sobs, maps, before, _) in enumerate(batch):
-                c = cands[idx]
-                c.score = float(after[r] - before) + _g_prior_change(st, c)
                 ns, nv, npnt = sub.n_sticks, sub.n_vertices, sobs.n_points
                 E = sub.ends_per_stick
                 done = StickState(labels=sub.labels, vertex_of=sub.vertex_of, rot=u.rot[so:so + ns],
@@ -676,10 +677,29 @@ def score_candidates(st: StickState, obs: Observations, priors: Priors, settings
                                   tau_v=u.tau_v[vo:vo + nv], alpha=u.alpha[vo:vo + nv], beta=u.beta[vo:vo + nv],
                                   tau_w=u.tau_w, tau_m=u.tau_m, tau_t=u.tau_t, ghosts=sub.ghosts)
                 done._maps = maps  # type: ignore[attr-defined]
-                results[idx] = done
+                out.append((float(after[r]), done))
                 so, vo, po = so + ns, vo + nv, po + npnt
-            batch, size = [], 0
+        return out
+
+    # Half of the blocks in a forked child (n_jobs > 1): the same numbers, bit for bit.
+    fitted = in_halves(fit, prepared, parallel=settings.n_jobs > 1, weights=[it[2].w.size for it in prepared])
+    for (idx, _, _, _, before, _), (after, done) in zip(prepared, fitted):
+        cands[idx].score = after - before + _g_prior_change(st, cands[idx])
+        results[idx] = done
     return results
+
+
+def _chunks(sizes: list[int], limit: int) -> list[tuple[int, int]]:
+    """Consecutive (start, stop) ranges of ``sizes``, each closed once its total reaches ``limit``."""
+    out, lo, tot = [], 0, 0
+    for i, n in enumerate(sizes):
+        tot += n
+        if tot >= limit:
+            out.append((lo, i + 1))
+            lo, tot = i + 1, 0
+    if lo < len(sizes):
+        out.append((lo, len(sizes)))
+    return out
 
 
 def _score_into(st: StickState, obs: Observations, priors: Priors, settings: EMSettings,
@@ -900,6 +920,8 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
     """Fig. 3 of the paper from an initial state; returns every stage and the selected one.
 
     The states of the best stage under each criterion are kept in ``Stage.state``.
+    With ``settings.n_jobs`` > 1 some of the work runs in forked children
+    (:mod:`.forked`; the same result either way).
     """
     ref = int(np.argmax(obs.mask.sum(axis=0)))
     st, val, sweeps = run_em(st, obs, priors, settings, settings.n_iter, rng)

@@ -127,28 +127,38 @@ def reattach_subtrees(st: StickState, obs: Observations, priors: Priors, setting
     Returns the state, its objective, the EM sweeps run, and one record per kept
     move: ``{"sticks": [a, b], "was": [c, d]}``, the stick pairs of the new and the
     old link (stick numbers of the state at that move). A cut is tried once per
-    kept move (``max_trials``, default twice the sticks, bounds the trials).
+    kept move (``max_trials``, default twice the sticks, bounds the trials). The
+    trials are greedy (:func:`.trials.greedy_trials`: each draws from its own
+    generator spawned from ``rng``; with ``settings.n_jobs`` > 1 the trial that
+    follows a loss runs beside the current one).
     """
     from .structure import apply_merge, components, merge_candidates, out_of_reach, run_em, score_candidates
+    from .trials import greedy_trials
 
     E = st.ends_per_stick
-    best = criterion(st, value)
     max_trials = 2 * st.n_sticks if max_trials is None else max_trials
-    tried: set[tuple] = set()
+    cur = {"st": st, "value": value, "best": criterion(st, value)}
     moves: list[dict] = []
-    sweeps = trials = 0
-    while trials < max_trials:
-        props = [(r, e) for r, e in cut_proposals(st, obs, ratio) if _cut_key(st, e) not in tried]
+    sweeps = 0
+
+    def propose(tried: set) -> int | None:
+        # A cut is tried once per kept move: its key carries the number of moves kept so far.
+        now = cur["st"]
+        if len(tried) >= max_trials:
+            return None
+        props = [e for _, e in cut_proposals(now, obs, ratio) if (len(moves), _cut_key(now, e)) not in tried]
         if not props:
-            break
-        _, e = props[0]
-        tried.add(_cut_key(st, e))
-        trials += 1
-        j = int(st.vertex_of[e])
-        partners = sorted({int(x // E) for x in np.flatnonzero(st.vertex_of == j) if x != e})
-        cut = detach_endpoint(st, e, priors)
+            return None
+        tried.add((len(moves), _cut_key(now, props[0])))
+        return int(props[0])
+
+    def run(e: int, r: np.random.Generator) -> tuple[StickState, float, int, dict] | None:
+        now = cur["st"]
+        j = int(now.vertex_of[e])
+        partners = sorted({int(x // E) for x in np.flatnonzero(now.vertex_of == j) if x != e})
+        cut = detach_endpoint(now, e, priors)
         comp = components(cut)[0]
-        whole = components(st)[0]
+        whole = components(now)[0]
         tree = whole == whole[e // E]
         cands = []
         for c in merge_candidates(cut, settings, cut.design(obs).n):
@@ -157,23 +167,33 @@ def reattach_subtrees(st: StickState, obs: Observations, priors: Priors, setting
             if tree[sticks].all() and on.any() and not on.all():  # links the two parts of the cut
                 cands.append(c)
         if not cands:
-            continue
-        blocks = score_candidates(cut, obs, priors, settings, cands, rng)
+            return None
+        blocks = score_candidates(cut, obs, priors, settings, cands, r)
         b = int(np.argmax([c.score for c in cands]))
         c = cands[b]
         sticks = sorted({int(x) for x in c.ends // E})
         if j in (c.j1, c.j2) and {x for x in sticks if comp[x] == comp[e // E]} == {int(e // E)}:
-            continue  # the best is the old link (e's stick back on j): nothing to move
+            return None  # the best is the old link (e's stick back on j): nothing to move
         trial = apply_merge(cut, c, priors, settings, blocks[b])
-        trial, val, n = run_em(trial, obs, priors, settings, settings.n_iter, rng,
-                               stop=out_of_reach(best, criterion))
+        trial, val, n = run_em(trial, obs, priors, settings, settings.n_iter, r,
+                               stop=out_of_reach(cur["best"], criterion))
+        return trial, val, n, {"sticks": [int(x) for x in sticks], "was": [int(e // E), partners[0]]}
+
+    def judge(e: int, result: tuple[StickState, float, int, dict] | None) -> bool:
+        nonlocal sweeps
+        if result is None:
+            return False
+        trial, val, n, move = result
         sweeps += n
         score = criterion(trial, val)
-        if score > best:
-            moves.append({"sticks": [int(x) for x in sticks], "was": [int(e // E), partners[0]]})
-            st, value, best = trial, val, score
-            tried.clear()
-    return st, value, sweeps, moves
+        if score <= cur["best"]:
+            return False
+        moves.append(move)
+        cur.update(st=trial, value=val, best=score)
+        return True
+
+    greedy_trials(propose, run, judge, rng, parallel=settings.n_jobs > 1)
+    return cur["st"], cur["value"], sweeps, moves
 
 
 def join_trees(st: StickState, obs: Observations, priors: Priors, settings, rng: np.random.Generator,

@@ -1,0 +1,171 @@
+"""Work run beside the structure search, in forked processes.
+
+Three kinds of work use the second core (``n_jobs`` > 1):
+
+* **The second start** (:func:`stickfigure.models.em.fit_stages`) is only kept
+  when the first search leaves a stick that is not rigid, which is known only
+  when the first search ends. It is therefore started *speculatively* in a child
+  process (:class:`Speculative`) at the same time as the first, at a lower
+  priority, and stopped as soon as the first search shows it is not needed.
+* **Greedy trials** (:mod:`.trials`): the trial that follows a loss runs beside
+  the current one.
+* **Batched fits of independent blocks** (:func:`in_halves`): the merge
+  candidates' block EM runs and the articulated-split candidates are disjoint
+  unions of blocks, so half of them is fitted in a child.
+
+The results never depend on ``n_jobs``: the second start and every trial draw
+from their own generators (spawned from the caller's, which
+:meth:`numpy.random.Generator.spawn` does without advancing the caller's
+stream), and a block's fit does not depend on the blocks fitted beside it
+(bit for bit: tests/test_em_forked.py).
+
+Only the ``fork`` start method is used (Linux): the child inherits the data and
+the state without pickling them, and only its result travels back through a
+pipe. Forking a process that runs other Python threads can deadlock the child
+(a lock held by a thread that does not exist there), so with other threads
+alive (tqdm's progress-bar monitor excepted: the child shows no progress), and
+on other platforms, the work runs in this process, one part after the other.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import signal
+import sys
+import threading
+import traceback
+from typing import Any, Callable
+
+__all__ = ["Speculative", "in_halves"]
+
+
+def _fork_context() -> Any:
+    """The fork context where forking this process is safe (Linux, no other Python thread), else None."""
+    if not sys.platform.startswith("linux") or "fork" not in multiprocessing.get_all_start_methods():
+        return None
+    # tqdm's monitor thread (alive after any progress bar) only takes tqdm's own lock, which the
+    # child never uses: it shows no progress bar.
+    if any(t is not threading.main_thread() and type(t).__name__ != "TMonitor" for t in threading.enumerate()):
+        return None
+    return multiprocessing.get_context("fork")
+
+
+class _Cancelled(BaseException):
+    """Raised in a child when its parent cancels it (SIGTERM)."""
+
+
+def _on_sigterm(signum: int, frame: Any) -> None:
+    raise _Cancelled
+
+
+def _child(conn: Any, job: Callable[[], Any], nice: int) -> None:
+    if nice:
+        os.nice(nice)
+    # A cancelled child unwinds its own ``with Speculative`` blocks, which cancel its children
+    # in turn (a child may fork: the second start's trials); killed outright, they would run on.
+    signal.signal(signal.SIGTERM, _on_sigterm)
+    try:
+        try:
+            out = ("ok", job())
+        except _Cancelled:
+            raise
+        except BaseException:  # reported to the parent, which raises it there
+            out = ("error", traceback.format_exc())
+        conn.send(out)
+    except _Cancelled:  # nobody waits for the result any more
+        pass
+    finally:
+        conn.close()
+
+
+class Speculative:
+    """A job started now in a forked child and either collected or cancelled later.
+
+    ``Speculative(job, parallel=True)`` forks a child that runs ``job()`` (where
+    that is safe: see the module docstring);
+    :meth:`result` waits for it and returns its value (raising ``RuntimeError``
+    with the child's traceback if it failed), :meth:`cancel` stops it. Where
+    forking is not possible or ``parallel`` is false, :meth:`result` runs ``job()``
+    in this process (``here()`` instead when given: the same work, e.g. with a
+    progress bar the child must not show) and :meth:`cancel` does nothing. Use as
+    a context manager so the child never outlives an exception in the parent.
+    ``name`` says what the job is in the errors :meth:`result` raises.
+    ``nice`` lowers the child's scheduling priority (:func:`os.nice`): a job that may
+    well be thrown away should leave the cores to work that is surely needed, such as
+    the speculative trials (:mod:`.trials`) the first search runs beside itself.
+    """
+
+    def __init__(self, job: Callable[[], Any], *, parallel: bool = True,
+                 here: Callable[[], Any] | None = None, name: str = "the job", nice: int = 0) -> None:
+        self._job = job if here is None else here
+        self._name = name
+        self._proc = None
+        self._conn = None
+        ctx = _fork_context() if parallel else None
+        if ctx is not None:
+            recv, send = ctx.Pipe(duplex=False)
+            # Not a daemon: a daemonic process may not have children of its own. It never outlives
+            # the ``with`` block that started it (cancel).
+            proc = ctx.Process(target=_child, args=(send, job, nice), daemon=False)
+            proc.start()
+            send.close()
+            self._proc, self._conn = proc, recv
+        #: Whether the job was forked into a child process (it stays true after the result).
+        self.forked = self._proc is not None
+
+    def result(self) -> Any:
+        if self._proc is None:
+            return self._job()
+        try:
+            status, payload = self._conn.recv()  # before join: a large result fills the pipe
+        except EOFError:
+            self._proc.join()
+            raise RuntimeError(f"{self._name}'s process died (exit code {self._proc.exitcode})") from None
+        finally:
+            self._close()
+        if status != "ok":
+            raise RuntimeError(f"{self._name} failed in its process:\n{payload}")
+        return payload
+
+    def cancel(self) -> None:
+        if self._proc is not None:
+            self._proc.terminate()
+            self._close()
+
+    def _close(self) -> None:
+        if self._proc is not None:
+            self._proc.join()
+            self._conn.close()
+            self._proc = self._conn = None
+
+    def __enter__(self) -> "Speculative":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.cancel()
+
+
+def in_halves(fn: Callable[[list], list], items: list, *, parallel: bool, weights: Any = None) -> list:
+    """``fn(items)`` computed as ``fn(first half) + fn(second half)``, the second half in a forked child.
+
+    ``fn`` maps a list of independent items to one result per item, so that
+    splitting the list changes nothing (a disjoint union of blocks fitted
+    together or apart gives the same numbers). The halves are cut where the
+    cumulative ``weights`` (the items' costs; default 1 each) reach half their
+    total. With one item or ``parallel`` false, ``fn(items)`` runs here; where
+    forking is not safe, both halves run here, one after the other.
+    """
+    n = len(items)
+    if n < 2 or not parallel:
+        return list(fn(items))
+    w = [1.0] * n if weights is None else [float(x) for x in weights]
+    total, acc, h = sum(w), 0.0, 0
+    while h < n - 1 and acc + w[h] <= total / 2:
+        acc += w[h]
+        h += 1
+    h = max(h, 1)
+    second = items[h:]
+    with Speculative(lambda: list(fn(second)), parallel=parallel, name="a batch of block fits") as other:
+        out = list(fn(items[:h]))
+        return out + other.result()

@@ -1,0 +1,270 @@
+"""Work in forked children: the speculative second search, greedy trials, halves of batched block fits."""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import sys
+import threading
+import time
+
+import pytest
+
+import numpy as np
+
+import stickfigure as sf
+from stickfigure._threads import available_cpus
+from stickfigure.models.em import refine
+from stickfigure.models.em import structure as S
+from stickfigure.models.em.forked import Speculative, _fork_context, in_halves
+from stickfigure.models.em.initialise import initial_state
+from stickfigure.models.em.model import Priors, normalise
+from stickfigure.models.em.trials import greedy_trials
+
+linux = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="forks only on Linux")
+
+
+@pytest.fixture(autouse=True)
+def _no_other_threads():
+    # Forking is refused while other Python threads run (tqdm's monitor excepted).
+    assert _fork_context() is not None or not sys.platform.startswith("linux"), threading.enumerate()
+
+
+def _pid_and(x):
+    return os.getpid(), x
+
+
+@linux
+def test_result_comes_from_a_child_process():
+    with Speculative(lambda: _pid_and([1, 2, 3])) as job:
+        assert job.forked
+        pid, value = job.result()
+        assert job.forked  # still says how it ran
+    assert pid != os.getpid() and value == [1, 2, 3]
+    assert not multiprocessing.active_children()
+
+
+@linux
+def test_cancel_stops_the_child():
+    with Speculative(lambda: time.sleep(60)) as job:
+        assert job.forked
+        t = time.monotonic()
+        job.cancel()
+    assert time.monotonic() - t < 10
+    assert not multiprocessing.active_children()
+
+
+@linux
+def test_a_failure_in_the_child_is_raised_here():
+    def boom():
+        raise ValueError("bad stick")
+
+    with Speculative(boom, name="the test job") as job, \
+            pytest.raises(RuntimeError, match=r"(?s)the test job failed in its process.*bad stick"):
+        job.result()
+    assert not multiprocessing.active_children()
+
+
+def test_no_fork_while_other_threads_run():
+    stop = threading.Event()
+    t = threading.Thread(target=stop.wait)
+    t.start()
+    try:
+        with Speculative(lambda: os.getpid()) as job:
+            assert not job.forked
+            assert job.result() == os.getpid()
+    finally:
+        stop.set()
+        t.join()
+
+
+def test_without_parallel_the_job_runs_here_when_asked():
+    calls = []
+    with Speculative(lambda: "child", parallel=False, here=lambda: calls.append(os.getpid()) or "here") as job:
+        assert not job.forked and not calls  # nothing runs until the result is asked for
+        assert job.result() == "here"
+    assert calls == [os.getpid()]
+
+
+def test_available_cpus_counts_what_this_process_may_use():
+    # The default of n_jobs (em's starts, mcmc's chains): the affinity mask, not the host's count.
+    n = available_cpus()
+    assert 1 <= n <= (os.cpu_count() or n)
+    if hasattr(os, "sched_getaffinity"):
+        assert n == len(os.sched_getaffinity(0))
+
+
+def _grandchild_pid(path):
+    # A child that forks a child of its own (the second start's trials do) and waits.
+    with Speculative(lambda: time.sleep(60)) as inner:
+        with open(path, "w") as f:
+            f.write(str(inner._proc.pid))
+        time.sleep(60)
+
+
+def _alive(pid):
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # A zombie (exited, not yet reaped by its parent) counts as gone.
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split()[2] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+@linux
+def test_cancel_stops_the_childs_own_children(tmp_path):
+    path = tmp_path / "pid"
+    with Speculative(lambda: _grandchild_pid(path)) as job:
+        t = time.monotonic()
+        while not path.exists() or not path.read_text():
+            assert time.monotonic() - t < 30
+            time.sleep(0.05)
+        inner = int(path.read_text())
+        assert _alive(inner)
+        job.cancel()
+    t = time.monotonic()
+    while _alive(inner):  # killed outright, the child would leave it running for 60 s
+        assert time.monotonic() - t < 10
+        time.sleep(0.05)
+
+
+@linux
+def test_nice_lowers_the_childs_priority():
+    with Speculative(lambda: os.nice(0), nice=5) as job:
+        assert job.result() == min(os.nice(0) + 5, 19)
+
+
+def _tagged(items):
+    return [(os.getpid(), x * x) for x in items]
+
+
+@pytest.mark.parametrize("parallel", [False, True])
+def test_in_halves_keeps_order_and_splits_by_weight(parallel):
+    items = list(range(7))
+    out = in_halves(_tagged, items, parallel=parallel, weights=[1, 1, 1, 1, 1, 1, 20])
+    assert [v for _, v in out] == [x * x for x in items]
+    pids = {p for p, _ in out}
+    if parallel and _fork_context() is not None:
+        # Cut where the weights reach half their total: the heavy last item alone in the child.
+        assert [p == os.getpid() for p, _ in out] == [True] * 6 + [False]
+    else:
+        assert pids == {os.getpid()}
+    assert in_halves(_tagged, [3], parallel=parallel) == [(os.getpid(), 9)]
+
+
+def _toy_trials(parallel, wins):
+    """Greedy trials over keys 0..9: a trial wins when its key is in ``wins``; each win
+    removes the next key (the model changed, so what follows does too)."""
+    gone: set = set()
+    log = []
+
+    def propose(tried):
+        for k in range(10):
+            if k not in tried and k not in gone:
+                tried.add(k)
+                return k
+        return None
+
+    def run(k, r):
+        return k, float(r.random()), os.getpid(), len(gone)
+
+    def judge(k, res):
+        assert res[3] == len(gone)  # run on the model as it is now, not a stale one
+        log.append(res[:2])
+        if k in wins:
+            gone.add(k + 1)
+            return True
+        return False
+
+    n = greedy_trials(propose, run, judge, np.random.default_rng(7), parallel=parallel)
+    return n, log
+
+
+@pytest.mark.parametrize("wins", [set(), {0, 4}, {2, 3, 8}, set(range(10))])
+def test_greedy_trials_do_not_depend_on_parallel(wins):
+    n1, serial = _toy_trials(False, wins)
+    n2, forked = _toy_trials(True, wins)
+    assert n1 == n2 == len(serial) and forked == serial
+    # Each judged trial has its own generator: the k-th spawned from the caller's.
+    kids = np.random.default_rng(7).spawn(n1)
+    assert [v for _, v in serial] == [float(g.random()) for g in kids]
+    expected, gone = [], set()
+    for k in range(10):
+        if k not in gone:
+            expected.append(k)
+            if k in wins:
+                gone.add(k + 1)
+    assert [k for k, _ in serial] == expected
+
+
+@linux
+def test_greedy_trials_run_the_next_trial_in_a_child():
+    pids = []
+
+    def propose(tried):
+        k = len(tried)
+        if k >= 4:
+            return None
+        tried.add(k)
+        return k
+
+    greedy_trials(propose, lambda k, r: os.getpid(), lambda k, pid: pids.append(pid) and False,
+                  np.random.default_rng(0), parallel=True)
+    assert len(pids) == 4 and pids[0] == pids[2] == os.getpid() and pids[1] != os.getpid() != pids[3]
+    assert not multiprocessing.active_children()
+
+
+def _scene(n_sticks, seed):
+    traj = sf.synthetic.random_figure(n_sticks=n_sticks, frames=80, noise=0.01, seed=seed)
+    xy = traj.xy.copy()
+    xy[np.random.default_rng(0).random(xy.shape[:2]) < 0.1] = np.nan
+    obs, _, _ = normalise(xy)
+    return traj, obs
+
+
+def test_merge_scores_are_the_same_in_halves():
+    # Bit for bit: a block's fit does not depend on the blocks beside it.
+    traj, obs = _scene(6, 5)
+    pri = Priors()
+    st = initial_state(obs, traj.labels_true, traj.n_parts_true, pri, np.random.default_rng(0))
+    st, _, _ = S.run_em(st, obs, pri, S.EMSettings(), 30, np.random.default_rng(0), resample=False)
+    out = {}
+    for jobs, batch in [(1, 2_000_000), (2, 2_000_000), (1, 1)]:
+        cands = S.merge_candidates(st, S.EMSettings())
+        settings = S.EMSettings(n_jobs=jobs, batch_size=batch)
+        blocks = S.score_candidates(st, obs, pri, settings, cands, np.random.default_rng(0))
+        out[jobs, batch] = ([c.score for c in cands], blocks)
+    assert len(out[1, 2_000_000][0]) > 2
+    for key in [(2, 2_000_000), (1, 1)]:
+        assert out[key][0] == out[1, 2_000_000][0]
+        for a, b in zip(out[key][1], out[1, 2_000_000][1]):
+            np.testing.assert_array_equal(a.rot, b.rot)
+            np.testing.assert_array_equal(a.mu_v, b.mu_v)
+
+
+def test_articulated_split_candidates_are_the_same_in_halves(monkeypatch):
+    # Two parts under one label each: every stick is a split candidate.
+    from stickfigure.models.em import forked
+
+    sizes = []
+
+    def record(fn, items, **kw):
+        sizes.append(len(items))
+        return in_halves(fn, items, **kw)
+
+    monkeypatch.setattr(forked, "in_halves", record)
+    traj, obs = _scene(6, 8)
+    pri = Priors()
+    labels = traj.labels_true // 2
+    st = initial_state(obs, labels, int(labels.max()) + 1, pri, np.random.default_rng(0))
+    st, _, _ = S.run_em(st, obs, pri, S.EMSettings(), 30, np.random.default_rng(0), resample=False)
+    one = refine.articulated_split_candidates(st, obs, pri, return_gain=True, n_jobs=1)
+    two = refine.articulated_split_candidates(st, obs, pri, return_gain=True, n_jobs=2)
+    assert one and min(sizes) > 2  # candidates of several sticks were fitted in halves
+    assert [(s, g) for s, _, g in one] == [(s, g) for s, _, g in two]
+    for (_, a, _), (_, b, _) in zip(one, two):
+        np.testing.assert_array_equal(a, b)
