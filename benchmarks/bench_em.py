@@ -52,10 +52,12 @@ em-speed
     stage) for an excavator-sized problem (35 points x 176 frames, 5 sticks) and
     a human-sized one (53 points x 1018 frames), and the human-sized problem at
     half its frames, and the full human-sized one in one process (``n_jobs=1``:
-    the second start after the first instead of beside it). The whole-pipeline
-    rows are timed untraced; peak memory (tracemalloc, which slows them about
-    1.5x) comes from the rows with the true groups given (memory should scale
-    linearly with frames; a forked second search's memory is not counted).
+    the second start after the first instead of beside it, and the greedy
+    trials and block fits one after the other). The whole-pipeline rows are
+    timed untraced; peak memory (tracemalloc, which slows them about 1.5x)
+    comes from the rows with the true groups given, run in one process
+    (``n_jobs=1``: tracemalloc sees this process only; memory should scale
+    linearly with frames).
     ``ctx.full`` adds the human-sized run with the paper's fixed iteration counts.
 em-time-spread
     The human-sized problem's time on 4 figures (8 with ``ctx.full``, figure seeds
@@ -391,14 +393,17 @@ def case_speed(ctx: Context) -> Iterator[dict[str, Any]]:
                         f"untraced"}
         if traj.n_frames > 1000:
             # The same in one process: the second start (where it runs) after the first instead
-            # of beside it (same skeleton; the gain is time_s here over time_s above).
+            # of beside it, the trials and block fits one after the other (same skeleton; the
+            # gain is time_s here over time_s above).
             skel1, timing1 = ctx.time(lambda: sf.fit(traj, method="em", random_state=ctx.seed, n_jobs=1, **kw))
             yield {"dataset": name + ", one process", "method": "em", **_score(skel1, traj), **timing1,
                    "notes": f"n_jobs=1; {timing1['time_s'] / max(timing['time_s'], 1e-9):.2f}x the default's time; "
                             f"untraced"}
         # The same without the initial clustering (given groups), to separate em's own cost.
+        # One process (n_jobs=1): tracemalloc sees this process only, and with more jobs part of
+        # the work (trials, half the block fits) would allocate in forked children.
         skel, timing = ctx.measure(lambda: sf.fit(traj, method="em", random_state=ctx.seed,
-                                                  labels=traj.labels_true, **kw))
+                                                  labels=traj.labels_true, n_jobs=1, **kw))
         yield {"dataset": name + ", groups given", "method": "em", **_score(skel, traj), **timing,
                "notes": "em alone (true groups as the start); traced (peak memory; time slowed by tracemalloc)"}
 
@@ -429,8 +434,8 @@ def case_memory(ctx: Context) -> Iterator[dict[str, Any]]:
     first = None
     for frames in (254, 509, 1018):
         traj = full.slice(frames=slice(0, frames))
-        skel, timing = ctx.measure(lambda: sf.fit(traj, method="em", random_state=ctx.seed,
-                                                  labels=traj.labels_true, max_frames=None))
+        skel, timing = ctx.measure(lambda: sf.fit(traj, method="em", random_state=ctx.seed,  # one process, traced
+                                                  labels=traj.labels_true, max_frames=None, n_jobs=1))
         per = timing["peak_mb"] / frames * 1000.0
         first = per if first is None else first
         yield {"dataset": f"human-sized 53x{frames}, groups given, every frame searched", "method": "em",

@@ -9,7 +9,9 @@ Usage::
 Each ``benchmarks/bench_*.py`` module defines ``CASES``, a list of
 :class:`Case`. A case's function receives a :class:`Context` and yields result
 rows (dicts). The runner times every row's work and records its peak memory
-(tracemalloc, which sees numpy's allocations), and reports time as a ratio
+(tracemalloc, which sees numpy's allocations in this process only: work a fit
+forks into children, with ``n_jobs`` > 1, is not counted; the memory targets'
+rows run with ``n_jobs=1``), and reports time as a ratio
 against a fixed numpy reference workload timed in the same process, so figures
 from noisy machines can be compared.
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from .model import Ghosts, Observations, Priors, StickState
 
-__all__ = ["candidate_fits", "resample_assignments", "skip_resamplings", "remove_sticks", "stick_is_free"]
+__all__ = ["candidate_fits", "resample_assignments", "remove_sticks", "stick_is_free"]
 
 
 def candidate_fits(st: StickState, obs: Observations, priors: Priors) -> tuple[np.ndarray, np.ndarray]:
@@ -140,11 +140,3 @@ def resample_assignments(st: StickState, obs: Observations, priors: Priors, rng:
     if drop.size:
         out = remove_sticks(out, drop)
     return out, changed
-
-
-def skip_resamplings(rng: np.random.Generator, n: int, n_points: int, n_sticks: int, mode: str = "sample") -> None:
-    """Advance ``rng`` as ``n`` calls of :func:`resample_assignments` would (with the stick count
-    unchanged): a run stopped early (:func:`.structure.run_em`'s ``stop``) leaves the stream where
-    the full run would, so what follows it draws the same numbers."""
-    if mode == "sample" and n > 0:
-        rng.gumbel(size=(n, n_points, n_sticks))  # one (P, S) draw per call, as there

@@ -66,7 +66,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from .assign import resample_assignments, skip_resamplings
+from .assign import resample_assignments
 from .forked import in_halves
 from .model import Ghosts, Observations, Priors, StickState, chain_degree, objective, objective_terms
 from .updates import em_sweep, update_endpoints
@@ -154,9 +154,6 @@ def run_em(st: StickState, obs: Observations, priors: Priors, settings: EMSettin
                         and abs(cur - prev) <= settings.tol * abs(cur)):
                     break
                 if stop is not None and stop(it, n_iter - it, st, cur):
-                    if every:  # what the rest of the run's resamplings would have drawn
-                        skip_resamplings(rng, len(range(it, n_iter, every)), obs.n_points, st.n_sticks,
-                                         settings.resample)
                     break
                 prev = cur
             if every:
