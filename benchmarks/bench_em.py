@@ -411,7 +411,7 @@ def case_speed(ctx: Context) -> Iterator[dict[str, Any]]:
 def case_time_spread(ctx: Context) -> Iterator[dict[str, Any]]:
     # One figure says little about the 2-minute target: the search's cost follows the number
     # of small sticks it leaves (each is a dissolution trial with its own EM run), and that
-    # varies from figure to figure (figure seeds 0-3: 68.2-162 s, docs/em.md section 11).
+    # varies from figure to figure (figure seeds 0-3: 57.7-134 s, docs/em.md section 11).
     n_figures = 8 if ctx.full else 4
     rows = []
     for k in range(n_figures):

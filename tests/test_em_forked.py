@@ -135,7 +135,33 @@ def test_cancel_stops_the_childs_own_children(tmp_path):
 @linux
 def test_nice_lowers_the_childs_priority():
     with Speculative(lambda: os.nice(0), nice=5) as job:
+        job._proc.join()  # done first (a result asked for earlier would be raced at this priority)
         assert job.result() == min(os.nice(0) + 5, 19)
+
+
+def _slow_when_niced():
+    # The niced child has a head start but is slow here; its normal-priority rival is not.
+    if os.nice(0) >= 19:
+        time.sleep(60)
+    return os.getpid()
+
+
+@linux
+def test_a_niced_job_still_running_is_raced_at_normal_priority():
+    with Speculative(_slow_when_niced, nice=19) as job:
+        first = job._proc.pid
+        t = time.monotonic()
+        pid = job.result()
+    assert time.monotonic() - t < 30 and pid not in (first, os.getpid())
+    assert not multiprocessing.active_children()  # the niced one was stopped
+
+
+@linux
+def test_a_niced_job_that_is_done_gives_its_own_result():
+    with Speculative(os.getpid, nice=19) as job:
+        first = job._proc.pid
+        job._proc.join()  # done before its result is asked for: no rival
+        assert job.result() == first
 
 
 def _tagged(items):

@@ -5,8 +5,10 @@ Three kinds of work use the second core (``n_jobs`` > 1):
 * **The second start** (:func:`stickfigure.models.em.fit_stages`) is only kept
   when the first search leaves a stick that is not rigid, which is known only
   when the first search ends. It is therefore started *speculatively* in a child
-  process (:class:`Speculative`) at the same time as the first, at a lower
-  priority, and stopped as soon as the first search shows it is not needed.
+  process (:class:`Speculative`) at the same time as the first, at the lowest
+  priority, and stopped as soon as the first search shows it is not needed. When
+  it is needed and not yet done, a copy at normal priority races it (a niced
+  process can be starved on a busy machine).
 * **Greedy trials** (:mod:`.trials`): the trial that follows a loss runs beside
   the current one.
 * **Batched fits of independent blocks** (:func:`in_halves`): the merge
@@ -30,6 +32,7 @@ on other platforms, the work runs in this process, one part after the other.
 from __future__ import annotations
 
 import multiprocessing
+import multiprocessing.connection
 import os
 import signal
 import sys
@@ -93,13 +96,17 @@ class Speculative:
     ``name`` says what the job is in the errors :meth:`result` raises.
     ``nice`` lowers the child's scheduling priority (:func:`os.nice`): a job that may
     well be thrown away should leave the cores to work that is surely needed, such as
-    the speculative trials (:mod:`.trials`) the first search runs beside itself.
+    the speculative trials (:mod:`.trials`) the first search runs beside itself. When
+    its result is asked for before it is ready, a copy at normal priority races it
+    (:meth:`result`).
     """
 
     def __init__(self, job: Callable[[], Any], *, parallel: bool = True,
                  here: Callable[[], Any] | None = None, name: str = "the job", nice: int = 0) -> None:
         self._job = job if here is None else here
+        self._child_job = job
         self._name = name
+        self._nice = nice
         self._proc = None
         self._conn = None
         ctx = _fork_context() if parallel else None
@@ -115,8 +122,23 @@ class Speculative:
         self.forked = self._proc is not None
 
     def result(self) -> Any:
+        """The job's value: the child's, or ``job()`` run here when nothing was forked.
+
+        A child started with ``nice`` that is still running is raced by a copy forked
+        now at this process's priority, and the first to finish gives the value (the
+        job is deterministic: both give the same) while the other is stopped. On a
+        busy machine a niced child may get almost no CPU time, and it must not hold
+        up a result that is now needed; where the machine is idle, the niced child,
+        which has a head start, wins.
+        """
         if self._proc is None:
             return self._job()
+        if self._nice and not self._conn.poll():
+            with Speculative(self._child_job, name=self._name) as rival:
+                if rival.forked and self._conn not in multiprocessing.connection.wait([self._conn, rival._conn]):
+                    self.cancel()
+                    return rival.result()
+            # (leaving the block stopped the rival)
         try:
             status, payload = self._conn.recv()  # before join: a large result fills the pipe
         except EOFError:
