@@ -7,8 +7,8 @@ Three kinds of work use the second core (``n_jobs`` > 1):
   when the first search ends. It is therefore started *speculatively* in a child
   process (:class:`Speculative`) at the same time as the first, at the lowest
   priority, and stopped as soon as the first search shows it is not needed. When
-  it is needed and not yet done, a copy at normal priority races it (a niced
-  process can be starved on a busy machine).
+  it is needed and not yet done, it gets its priority back where the system
+  allows it (a niced process can be starved on a busy machine).
 * **Greedy trials** (:mod:`.trials`): the trial that follows a loss runs beside
   the current one.
 * **Batched fits of independent blocks** (:func:`in_halves`): the merge
@@ -32,7 +32,6 @@ on other platforms, the work runs in this process, one part after the other.
 from __future__ import annotations
 
 import multiprocessing
-import multiprocessing.connection
 import os
 import signal
 import sys
@@ -62,9 +61,12 @@ def _on_sigterm(signum: int, frame: Any) -> None:
     raise _Cancelled
 
 
-def _child(conn: Any, job: Callable[[], Any], nice: int) -> None:
-    if nice:
-        os.nice(nice)
+def _child(conn: Any, job: Callable[[], Any], group: bool) -> None:
+    if group:
+        try:
+            os.setpgid(0, 0)  # (the parent does it too: whichever runs first)
+        except OSError:
+            pass
     # A cancelled child unwinds its own ``with Speculative`` blocks, which cancel its children
     # in turn (a child may fork: the second start's trials); killed outright, they would run on.
     signal.signal(signal.SIGTERM, _on_sigterm)
@@ -97,14 +99,13 @@ class Speculative:
     ``nice`` lowers the child's scheduling priority (:func:`os.nice`): a job that may
     well be thrown away should leave the cores to work that is surely needed, such as
     the speculative trials (:mod:`.trials`) the first search runs beside itself. When
-    its result is asked for before it is ready, a copy at normal priority races it
-    (:meth:`result`).
+    its result is asked for before it is ready, it gets this process's priority back
+    where the system allows it (:meth:`result`).
     """
 
     def __init__(self, job: Callable[[], Any], *, parallel: bool = True,
                  here: Callable[[], Any] | None = None, name: str = "the job", nice: int = 0) -> None:
         self._job = job if here is None else here
-        self._child_job = job
         self._name = name
         self._nice = nice
         self._proc = None
@@ -114,8 +115,20 @@ class Speculative:
             recv, send = ctx.Pipe(duplex=False)
             # Not a daemon: a daemonic process may not have children of its own. It never outlives
             # the ``with`` block that started it (cancel).
-            proc = ctx.Process(target=_child, args=(send, job, nice), daemon=False)
+            proc = ctx.Process(target=_child, args=(send, job, bool(nice)), daemon=False)
             proc.start()
+            if nice:
+                # Its own process group, so that it and the children it forks can be reniced
+                # together (result); the priority set from here, so that result cannot undo it
+                # before the child has set it.
+                try:
+                    os.setpgid(proc.pid, proc.pid)
+                except OSError:  # the child has done it already
+                    pass
+                try:
+                    os.setpriority(os.PRIO_PROCESS, proc.pid, os.getpriority(os.PRIO_PROCESS, 0) + nice)
+                except OSError:  # already gone
+                    pass
             send.close()
             self._proc, self._conn = proc, recv
         #: Whether the job was forked into a child process (it stays true after the result).
@@ -124,21 +137,23 @@ class Speculative:
     def result(self) -> Any:
         """The job's value: the child's, or ``job()`` run here when nothing was forked.
 
-        A child started with ``nice`` that is still running is raced by a copy forked
-        now at this process's priority, and the first to finish gives the value (the
-        job is deterministic: both give the same) while the other is stopped. On a
-        busy machine a niced child may get almost no CPU time, and it must not hold
-        up a result that is now needed; where the machine is idle, the niced child,
-        which has a head start, wins.
+        A child started with ``nice`` that is still running gets this process's
+        priority back, with the children it forked (its process group), where the
+        system allows it (``os.setpriority``: root with CAP_SYS_NICE, or a raised
+        RLIMIT_NICE): on a machine kept busy by other work a niced process gets
+        almost no CPU time, and it must not hold up a result that is now needed.
+        Where that is not allowed it keeps its priority, which costs nothing on an
+        idle machine. (Racing it with a copy at normal priority was tried: the
+        copy's own forked work took both cores from the niced child, which lost its
+        head start, and a human-sized figure took 136 s instead of 98.)
         """
         if self._proc is None:
             return self._job()
         if self._nice and not self._conn.poll():
-            with Speculative(self._child_job, name=self._name) as rival:
-                if rival.forked and self._conn not in multiprocessing.connection.wait([self._conn, rival._conn]):
-                    self.cancel()
-                    return rival.result()
-            # (leaving the block stopped the rival)
+            try:
+                os.setpriority(os.PRIO_PGRP, self._proc.pid, os.getpriority(os.PRIO_PROCESS, 0))
+            except OSError:
+                pass
         try:
             status, payload = self._conn.recv()  # before join: a large result fills the pipe
         except EOFError:
