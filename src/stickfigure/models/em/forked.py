@@ -67,6 +67,9 @@ def _child(conn: Any, job: Callable[[], Any], group: bool) -> None:
             os.setpgid(0, 0)  # (the parent does it too: whichever runs first)
         except OSError:
             pass
+        # Out of the terminal's foreground group, a write (a warning) would stop it under
+        # ``stty tostop`` and leave the parent waiting for ever.
+        signal.signal(signal.SIGTTOU, signal.SIG_IGN)
     # A cancelled child unwinds its own ``with Speculative`` blocks, which cancel its children
     # in turn (a child may fork: the second start's trials); killed outright, they would run on.
     signal.signal(signal.SIGTERM, _on_sigterm)
