@@ -8,9 +8,8 @@ import sys
 import threading
 import time
 
-import pytest
-
 import numpy as np
+import pytest
 
 import stickfigure as sf
 from stickfigure._threads import available_cpus
