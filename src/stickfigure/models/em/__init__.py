@@ -29,10 +29,10 @@ from ..._validation import check_labels, check_positive
 from ...skeleton import Skeleton
 from ...trajectories import Trajectories
 from ..base import StickEstimator, register
+from .forked import Speculative
 from .impute import refit_motions, rotation_concentration, start_state
 from .initialise import fill_gaps, initial_state
 from .model import Observations, Priors, StickState, normalise
-from .forked import Speculative
 from .refine import misfit_ratios
 from .structure import (EMSettings, Stage, bic, child_rng, extend_frames, learn_structure, run_em,
                         search_frames, stick_edges)
@@ -443,7 +443,7 @@ OVERSEGMENT_MISFIT = 1.35
 # sticks fit at 1.28: the lower quartile of 4 bad sticks is no noise level).
 OVERSEGMENT_SIZE = 10.0
 # The speculative second search runs at this lower priority (os.nice): on the human-sized
-# random figures it is thrown away on 2 of 4 seeds, while the first search's speculative
+# random figures it is thrown away on 3 of 4 seeds, while the first search's speculative
 # trials (trials.py), forked beside it, are needed whenever the trial before them loses.
 SECOND_START_NICE = 19
 

@@ -74,7 +74,7 @@ def greedy_trials(propose: Callable[[set], Hashable | None], run: Callable[[Hash
         after = set(tried)
         nxt = propose(after)
         g_this, g_next = gen(k), gen(k + 1)
-        job = (lambda k=nxt, g=g_next: run(k, g)) if nxt is not None else (lambda: None)
+        job = (lambda key2=nxt, g=g_next: run(key2, g)) if nxt is not None else (lambda: None)
         # Without parallel, Speculative runs the job only when its result is asked for.
         with Speculative(job, parallel=parallel and nxt is not None, name="a speculative trial") as ahead:
             result = run(key, g_this)
