@@ -131,6 +131,23 @@ def test_cancel_stops_the_childs_own_children(tmp_path):
         time.sleep(0.05)
 
 
+def _forgets_its_child():
+    # A child left without its ``with`` block (as when a cancellation lands between forking
+    # it and the block taking charge), whose result fills the pipe nobody reads.
+    Speculative(lambda: b"x" * (16 << 20))
+    time.sleep(60)
+
+
+@linux
+def test_cancel_does_not_wait_for_a_child_nobody_collects():
+    with Speculative(_forgets_its_child) as job:
+        time.sleep(1.0)  # the grandchild is writing by now
+        t = time.monotonic()
+        job.cancel()
+    assert time.monotonic() - t < 10
+    assert not multiprocessing.active_children()
+
+
 @linux
 def test_nice_lowers_the_childs_priority():
     with Speculative(lambda: os.nice(0), nice=5) as job:

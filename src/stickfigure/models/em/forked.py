@@ -85,6 +85,23 @@ def _child(conn: Any, job: Callable[[], Any], group: bool) -> None:
         pass
     finally:
         conn.close()
+        _stop_children()
+
+
+def _stop_children() -> None:
+    """Stop the children this process started and has not collected.
+
+    A cancellation (SIGTERM) can arrive anywhere, even between forking a child and
+    the ``with`` block taking charge of it. Such a child would outlive the unwinding,
+    and at exit multiprocessing joins its (non-daemonic) children, while the child
+    waits to write a result nobody reads: both would wait for ever (seen once in
+    the demo). Further cancellations are ignored meanwhile, so this cleanup runs
+    to its end.
+    """
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    for proc in multiprocessing.active_children():
+        proc.terminate()
+        proc.join()
 
 
 class Speculative:
