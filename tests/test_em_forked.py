@@ -25,7 +25,7 @@ linux = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="forks o
 
 @pytest.fixture(autouse=True)
 def _no_other_threads():
-    # Forking is refused while other Python threads run (tqdm's monitor excepted).
+    # Forking is refused while other Python threads run (tqdm's monitor included).
     assert _fork_context() is not None or not sys.platform.startswith("linux"), threading.enumerate()
 
 

@@ -500,7 +500,13 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
         if show:
             from tqdm.auto import tqdm
 
-            bar = tqdm(total=max(S - 1, 1), desc=f"em merges (start {k + 1} of {len(starts)})", unit="stage")
+            class Bar(tqdm):  # type: ignore[misc, valid-type]
+                # No monitor thread: the search forks (forked.py), and a fork taken while the
+                # monitor held tqdm's or stderr's lock (it refreshes bars every 10 s) leaves that
+                # lock held in the child; forking is refused while any other thread runs.
+                monitor_interval = 0
+
+            bar = Bar(total=max(S - 1, 1), desc=f"em merges (start {k + 1} of {len(starts)})", unit="stage")
 
             def cb(i: int, n: int, value: float, bar: Any = bar) -> None:
                 bar.total = max(n, 1)

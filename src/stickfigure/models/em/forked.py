@@ -25,7 +25,7 @@ Only the ``fork`` start method is used (Linux): the child inherits the data and
 the state without pickling them, and only its result travels back through a
 pipe. Forking a process that runs other Python threads can deadlock the child
 (a lock held by a thread that does not exist there), so with other threads
-alive (tqdm's progress-bar monitor excepted: the child shows no progress), and
+alive (tqdm's progress-bar monitor included: em's own bar starts none), and
 on other platforms, the work runs in this process, one part after the other.
 """
 
@@ -46,9 +46,10 @@ def _fork_context() -> Any:
     """The fork context where forking this process is safe (Linux, no other Python thread), else None."""
     if not sys.platform.startswith("linux") or "fork" not in multiprocessing.get_all_start_methods():
         return None
-    # tqdm's monitor thread (alive after any progress bar) only takes tqdm's own lock, which the
-    # child never uses: it shows no progress bar.
-    if any(t is not threading.main_thread() and type(t).__name__ != "TMonitor" for t in threading.enumerate()):
+    # Any thread, tqdm's progress-bar monitor included: a fork taken while it refreshes a bar
+    # leaves tqdm's or stderr's lock held in the child (the suspected cause of a demo run
+    # that hung with progress bars shown, 1 in about 20).
+    if any(t is not threading.main_thread() for t in threading.enumerate()):
         return None
     return multiprocessing.get_context("fork")
 
