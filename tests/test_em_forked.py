@@ -25,7 +25,11 @@ linux = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="forks o
 
 @pytest.fixture(autouse=True)
 def _no_other_threads():
-    # Forking is refused while other Python threads run (tqdm's monitor included).
+    # Forking is refused while other Python threads run (tqdm's monitor included): stop a
+    # monitor that earlier tests' progress bars (render, CLI) left running.
+    for t in threading.enumerate():
+        if type(t).__name__ == "TMonitor":
+            t.exit()
     assert _fork_context() is not None or not sys.platform.startswith("linux"), threading.enumerate()
 
 
