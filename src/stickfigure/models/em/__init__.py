@@ -469,11 +469,6 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
     result is the same either way.
     """
     n_jobs = available_cpus() if n_jobs is None else n_jobs
-    if progress:
-        # Stop-gap: every fit seen to hang at its end (2 of about 20 demo runs) showed a
-        # progress bar; the cause is not found yet (the issue's note). One process cannot
-        # hang, and gives the same skeleton.
-        n_jobs = 1
     settings = replace(settings, n_jobs=n_jobs)
     obs_all, centre, scale = normalise(traj.xy)
     frames = search_frames(obs_all.mask > 0, max_frames)

@@ -62,7 +62,10 @@ def _on_sigterm(signum: int, frame: Any) -> None:
     raise _Cancelled
 
 
-def _child(conn: Any, job: Callable[[], Any], group: bool) -> None:
+def _child(conn: Any, reader: Any, job: Callable[[], Any], group: bool) -> None:
+    # The parent's end of the pipe, inherited: closed, so that the pipe breaks when the parent
+    # closes it (a write nobody will read then fails instead of waiting, see Speculative._close).
+    reader.close()
     if group:
         try:
             os.setpgid(0, 0)  # (the parent does it too: whichever runs first)
@@ -82,7 +85,7 @@ def _child(conn: Any, job: Callable[[], Any], group: bool) -> None:
         except BaseException:  # reported to the parent, which raises it there
             out = ("error", traceback.format_exc())
         conn.send(out)
-    except _Cancelled:  # nobody waits for the result any more
+    except (_Cancelled, BrokenPipeError):  # nobody waits for the result any more
         pass
     finally:
         conn.close()
@@ -136,7 +139,7 @@ class Speculative:
             recv, send = ctx.Pipe(duplex=False)
             # Not a daemon: a daemonic process may not have children of its own. It never outlives
             # the ``with`` block that started it (cancel).
-            proc = ctx.Process(target=_child, args=(send, job, bool(nice)), daemon=False)
+            proc = ctx.Process(target=_child, args=(send, recv, job, bool(nice)), daemon=False)
             proc.start()
             if nice:
                 # Its own process group, so that it and the children it forks can be reniced
@@ -179,9 +182,16 @@ class Speculative:
             status, payload = self._conn.recv()  # before join: a large result fills the pipe
         except EOFError:
             self._proc.join()
-            raise RuntimeError(f"{self._name}'s process died (exit code {self._proc.exitcode})") from None
-        finally:
+            code = self._proc.exitcode
             self._close()
+            raise RuntimeError(f"{self._name}'s process died (exit code {code})") from None
+        except BaseException:
+            # Interrupted while waiting (this process cancelled, or Ctrl-C): the result is no
+            # longer wanted, and a child writing a result larger than the pipe holds would never
+            # exit if joined without being stopped (this hung 2 demo runs in 40).
+            self.cancel()
+            raise
+        self._close()
         if status != "ok":
             raise RuntimeError(f"{self._name} failed in its process:\n{payload}")
         return payload
@@ -193,8 +203,10 @@ class Speculative:
 
     def _close(self) -> None:
         if self._proc is not None:
-            self._proc.join()
+            # The read end first: a child still writing then gets a broken pipe instead of
+            # waiting for a reader while this process waits for it to exit.
             self._conn.close()
+            self._proc.join()
             self._proc = self._conn = None
 
     def __enter__(self) -> "Speculative":
