@@ -167,7 +167,8 @@ class Speculative:
         RLIMIT_NICE): on a machine kept busy by other work a niced process gets
         almost no CPU time, and it must not hold up a result that is now needed.
         Where that is not allowed it keeps its priority, which costs nothing on an
-        idle machine. (Racing it with a copy at normal priority was tried: the
+        idle machine. Interrupted while it waits (a cancellation of this process, or
+        Ctrl-C), it stops the child before re-raising. (Racing it with a copy at normal priority was tried: the
         copy's own forked work took both cores from the niced child, which lost its
         head start, and a human-sized figure took 136 s instead of 98.)
         """
@@ -188,7 +189,7 @@ class Speculative:
         except BaseException:
             # Interrupted while waiting (this process cancelled, or Ctrl-C): the result is no
             # longer wanted, and a child writing a result larger than the pipe holds would never
-            # exit if joined without being stopped (this hung 2 demo runs in 40).
+            # exit if joined without being stopped (2 of 32 demo runs hung so).
             self.cancel()
             raise
         self._close()
