@@ -68,6 +68,14 @@ def test_a_failure_in_the_child_is_raised_here():
     assert not multiprocessing.active_children()
 
 
+@linux
+def test_a_child_that_dies_is_reported_with_its_exit_code():
+    with Speculative(lambda: os._exit(3), name="the job") as job:
+        with pytest.raises(RuntimeError, match=r"the job's process died \(exit code 3\)"):
+            job.result()
+    assert not multiprocessing.active_children()
+
+
 def test_no_fork_while_other_threads_run():
     stop = threading.Event()
     t = threading.Thread(target=stop.wait)

@@ -501,9 +501,9 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
             from tqdm.auto import tqdm
 
             class Bar(tqdm):  # type: ignore[misc, valid-type]
-                # No monitor thread: the search forks (forked.py), and a fork taken while the
-                # monitor held tqdm's or stderr's lock (it refreshes bars every 10 s) leaves that
-                # lock held in the child; forking is refused while any other thread runs.
+                # No monitor thread: forking is refused while any other thread runs (forked.py: a
+                # fork taken while the monitor held tqdm's or stderr's lock leaves it held in the
+                # child), so with a monitor the search would run on one core.
                 monitor_interval = 0
 
             bar = Bar(total=max(S - 1, 1), desc=f"em merges (start {k + 1} of {len(starts)})", unit="stage")

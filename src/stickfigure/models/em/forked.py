@@ -47,8 +47,8 @@ def _fork_context() -> Any:
     if not sys.platform.startswith("linux") or "fork" not in multiprocessing.get_all_start_methods():
         return None
     # Any thread, tqdm's progress-bar monitor included: a fork taken while it refreshes a bar
-    # leaves tqdm's or stderr's lock held in the child (the suspected cause of a demo run
-    # that hung with progress bars shown, 1 in about 20).
+    # leaves tqdm's or stderr's lock held in the child. (The demo's hangs, once suspected of
+    # this, came from result: see there.)
     if any(t is not threading.main_thread() for t in threading.enumerate()):
         return None
     return multiprocessing.get_context("fork")
@@ -98,9 +98,9 @@ def _stop_children() -> None:
     A cancellation (SIGTERM) can arrive anywhere, even between forking a child and
     the ``with`` block taking charge of it. Such a child would outlive the unwinding,
     and at exit multiprocessing joins its (non-daemonic) children, while the child
-    waits to write a result nobody reads: both would wait for ever (seen once in
-    the demo). Further cancellations are ignored meanwhile, so this cleanup runs
-    to its end.
+    waits to write a result nobody reads: both would wait for ever (the test
+    ``test_cancel_does_not_wait_for_a_child_nobody_collects`` builds that case).
+    Further cancellations are ignored meanwhile, so this cleanup runs to its end.
     """
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     for proc in multiprocessing.active_children():
@@ -167,10 +167,11 @@ class Speculative:
         RLIMIT_NICE): on a machine kept busy by other work a niced process gets
         almost no CPU time, and it must not hold up a result that is now needed.
         Where that is not allowed it keeps its priority, which costs nothing on an
-        idle machine. Interrupted while it waits (a cancellation of this process, or
-        Ctrl-C), it stops the child before re-raising. (Racing it with a copy at normal priority was tried: the
+        idle machine. (Racing it with a copy at normal priority was tried: the
         copy's own forked work took both cores from the niced child, which lost its
         head start, and a human-sized figure took 136 s instead of 98.)
+        Interrupted while it waits (a cancellation of this process, or Ctrl-C), it
+        stops the child before re-raising.
         """
         if self._proc is None:
             return self._job()
@@ -182,10 +183,9 @@ class Speculative:
         try:
             status, payload = self._conn.recv()  # before join: a large result fills the pipe
         except EOFError:
-            self._proc.join()
-            code = self._proc.exitcode
+            proc = self._proc
             self._close()
-            raise RuntimeError(f"{self._name}'s process died (exit code {code})") from None
+            raise RuntimeError(f"{self._name}'s process died (exit code {proc.exitcode})") from None
         except BaseException:
             # Interrupted while waiting (this process cancelled, or Ctrl-C): the result is no
             # longer wanted, and a child writing a result larger than the pipe holds would never
