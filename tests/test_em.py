@@ -691,7 +691,7 @@ def _rigid_body(n: int, F: int, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     X = rng.normal(size=(n, 3)) * np.array([1.0, 0.7, 0.5])
     ang = np.cumsum(rng.normal(scale=0.05, size=(F, 3)), axis=0) + rng.normal(size=3)
-    from stickfigure.models.em.updates import _rodrigues
+    from stickfigure.geometry import rotation_from_vectors as _rodrigues
 
     R = _rodrigues(ang)[:, :2, :]
     t = np.cumsum(rng.normal(scale=0.02, size=(F, 2)), axis=0)
@@ -815,7 +815,7 @@ def test_impute_does_not_mirror_a_stick_from_coplanar_visible_points():
     X = rng.normal(size=(n, 3)) * 0.5
     X[:5, 2] = 0.0  # five points on a plane, three off it
     X[5:, 2] = np.array([0.6, -0.5, 0.7])
-    from stickfigure.models.em.updates import _rodrigues
+    from stickfigure.geometry import rotation_from_vectors as _rodrigues
 
     ang = np.cumsum(rng.normal(scale=0.04, size=(F, 3)), axis=0) + np.array([0.3, 0.5, 0.1])
     xy = np.einsum("fdk,nk->nfd", _rodrigues(ang)[:, :2, :], X) + 0.003 * rng.normal(size=(n, F, 2))

@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 from sklearn.metrics import adjusted_rand_score
 
 import stickfigure as sf
+from stickfigure import geometry as G
 from stickfigure.models.em import structure as S
 from stickfigure.models.em import updates as U
 from stickfigure.models.em.assign import candidate_fits, resample_assignments
@@ -253,7 +254,7 @@ def test_newton_derivatives_match_finite_differences():
     eps = 1e-5
     g = np.stack([(f(eps * np.eye(3)[k][None].repeat(3, 0)) - f(-eps * np.eye(3)[k][None].repeat(3, 0))) / (2 * eps)
                   for k in range(3)], -1)
-    g_an, H_an = U.newton_model(R0, C_ab, C_bb)
+    g_an, H_an = G.rotation_newton_model(R0, C_ab, C_bb)
     np.testing.assert_allclose(g_an, g, rtol=1e-5, atol=1e-6)
     # The Hessian (closed form of T = tr(P K_a C K_b)) against second differences.
     eps = 1e-4

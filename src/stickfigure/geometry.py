@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 from scipy.linalg import solveh_banded
+from scipy.spatial.transform import Rotation
 
 from ._validation import as_float_array, check_random_state
 
@@ -32,6 +33,11 @@ __all__ = [
     "metric_upgrade",
     "fit_motions",
     "orthogonal_procrustes_rows",
+    "rotation_energy",
+    "rotation_newton_model",
+    "rotation_newton_step",
+    "rotation_from_vectors",
+    "min_eig_sym3",
     "similarity_fit_2d",
     "low_rank_complete",
     "estimate_rank",
@@ -616,6 +622,116 @@ def fit_motions(
     return out
 
 
+# ------------------------------------------------------------------ rotation energy
+# The energy of a rotation with orthonormal rows against weighted, centred sources, and Newton
+# steps on it (closed-form 3x3 arithmetic, batched): shared by the projection Procrustes below
+# and the EM's motion update (models/em/updates.py).
+def rotation_energy(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray) -> np.ndarray:
+    """``sum_n w_n |a_n - R b_n|^2`` (centred) up to a constant: ``-2 tr(R C_ab^T) + tr(R C_bb R^T)``."""
+    return np.sum((R @ C_bb - 2.0 * C_ab) * R, axis=(-1, -2))
+
+
+def _trace3(M: np.ndarray) -> np.ndarray:
+    """Traces of 3x3 matrices (..., 3, 3) -> (...) (cheaper than np.trace on small batched arrays)."""
+    return M[..., 0, 0] + M[..., 1, 1] + M[..., 2, 2]
+
+
+def _vee(M: np.ndarray) -> np.ndarray:
+    """(M23 - M32, M31 - M13, M12 - M21): ``tr([w]_x M) = w . vee(M)``."""
+    return np.stack([M[..., 1, 2] - M[..., 2, 1], M[..., 2, 0] - M[..., 0, 2], M[..., 0, 1] - M[..., 1, 0]], -1)
+
+
+def _solve3(H: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Batched 3x3 solve by cofactors (LAPACK's per-matrix overhead dominates at this size)."""
+    a, b_, c = H[..., 0, 0], H[..., 0, 1], H[..., 0, 2]
+    d, e, f = H[..., 1, 0], H[..., 1, 1], H[..., 1, 2]
+    g, h, i = H[..., 2, 0], H[..., 2, 1], H[..., 2, 2]
+    A, B, C = e * i - f * h, f * g - d * i, d * h - e * g
+    det = a * A + b_ * B + c * C
+    x0 = A * b[..., 0] + (c * h - b_ * i) * b[..., 1] + (b_ * f - c * e) * b[..., 2]
+    x1 = B * b[..., 0] + (a * i - c * g) * b[..., 1] + (c * d - a * f) * b[..., 2]
+    x2 = C * b[..., 0] + (b_ * g - a * h) * b[..., 1] + (a * e - b_ * d) * b[..., 2]
+    safe = np.where(np.abs(det) > 0, det, 1.0)
+    return np.stack([x0, x1, x2], -1) / safe[..., None], det
+
+
+def rotation_from_vectors(w: np.ndarray) -> np.ndarray:
+    """exp([w]_x), shape (..., 3, 3), of rotation vectors w (..., 3) (scipy's Rotation)."""
+    out = np.zeros(w.shape[:-1] + (3, 3))
+    if out.size:
+        out[:] = Rotation.from_rotvec(w.reshape(-1, 3)).as_matrix().reshape(out.shape)
+    return out
+
+
+def min_eig_sym3(H: np.ndarray) -> np.ndarray:
+    """Smallest eigenvalue of symmetric 3x3 matrices (closed form, trigonometric)."""
+    p1 = H[..., 0, 1] ** 2 + H[..., 0, 2] ** 2 + H[..., 1, 2] ** 2
+    q = _trace3(H) / 3.0
+    p2 = (H[..., 0, 0] - q) ** 2 + (H[..., 1, 1] - q) ** 2 + (H[..., 2, 2] - q) ** 2 + 2.0 * p1
+    p = np.sqrt(p2 / 6.0)
+    B = (H - q[..., None, None] * np.eye(3)) / np.where(p > 0, p, 1.0)[..., None, None]
+    r = 0.5 * (B[..., 0, 0] * (B[..., 1, 1] * B[..., 2, 2] - B[..., 1, 2] * B[..., 2, 1])
+               - B[..., 0, 1] * (B[..., 1, 0] * B[..., 2, 2] - B[..., 1, 2] * B[..., 2, 0])
+               + B[..., 0, 2] * (B[..., 1, 0] * B[..., 2, 1] - B[..., 1, 1] * B[..., 2, 0]))
+    phi = np.arccos(np.clip(r, -1.0, 1.0)) / 3.0
+    return q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+
+
+def rotation_newton_model(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gradient g (..., 3) and Hessian H (..., 3, 3) of ``w -> f(R exp([w]_x))`` at w = 0.
+
+    ``f(R) = tr(R C_bb R^T) - 2 tr(R C_ab^T)`` for R (..., D, 3) with orthonormal
+    rows. With ``P = R^T R`` (symmetric, trace D), ``N = C_ab^T R`` and C = C_bb
+    (symmetric): ``g = vee(C P - P C) - 2 vee(N)`` and
+    ``H = -2 T + (M - tr(M) I) - 2 (sym(N) - tr(N) I)``, ``M = C P + P C``,
+    ``T_ab = tr(P K_a C K_b)`` (K_a = [e_a]_x; docs/em.md). Expanding the two
+    Levi-Civita symbols of ``T`` (``(K_a)_jk = eps_jka``) gives, symmetrised,
+    ``T = (tr(PC) - D tr C) I - M + D C + tr(C) P``, so
+    ``H = 3 M - 2 D C - 2 tr(C) P - 2 sym(N) + (2 tr N + 2 D tr C - 4 tr(PC)) I``:
+    element-wise products of 3x3 arrays only (batched 3x3 matrix products cost
+    more than the arithmetic in numpy). Tested against finite differences.
+    """
+    D = R.shape[-2]
+    P = np.swapaxes(R, -1, -2) @ R
+    N = np.swapaxes(C_ab, -1, -2) @ R
+    CP = C_bb @ P
+    PC = np.swapaxes(CP, -1, -2)
+    g = _vee(CP - PC) - 2.0 * _vee(N)
+    trC = _trace3(C_bb)
+    diag = 2.0 * _trace3(N) + 2.0 * D * trC - 4.0 * _trace3(CP)
+    H = (3.0 * (CP + PC) - (2.0 * D) * C_bb - 2.0 * trC[..., None, None] * P - (N + np.swapaxes(N, -1, -2))
+         + diag[..., None, None] * np.eye(3))
+    return g, H
+
+
+def rotation_newton_step(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, energy: np.ndarray | None = None,
+                *, return_energy: bool = False) -> Any:
+    """One Newton step for ``f(R) = tr(R C_bb R^T) - 2 tr(R C_ab^T)`` on the rotations ``R Q``.
+
+    ``Q = exp([w]_x)`` with w from the quadratic model of :func:`rotation_newton_model`.
+    Where H is not positive definite it is shifted by its smallest eigenvalue
+    (Levenberg-Marquardt), and steps are capped at 0.5 rad; the result is kept
+    only where f decreased. ``energy``: f at R if known; with ``return_energy``
+    the new f is returned too.
+    """
+    g, H = rotation_newton_model(R, C_ab, C_bb)
+    lam = min_eig_sym3(H)
+    mu = np.maximum(0.0, -lam) + 1e-6 * np.abs(H).max(axis=(-1, -2)) + 1e-300
+    w, _ = _solve3(H + mu[..., None, None] * np.eye(3), -g)
+    w = np.where(np.all(np.isfinite(w), axis=-1, keepdims=True), w, 0.0)
+    # Long steps leave the region where the quadratic model holds.
+    nrm = np.sqrt(np.sum(w * w, axis=-1, keepdims=True))
+    w = w * np.minimum(1.0, 0.5 / np.maximum(nrm, 1e-300))
+    R_new = R @ rotation_from_vectors(w)
+    e_new = rotation_energy(R_new, C_ab, C_bb)
+    e_old = rotation_energy(R, C_ab, C_bb) if energy is None else energy
+    better = e_new < e_old
+    out = np.where(better[..., None, None], R_new, R)
+    if return_energy:
+        return out, np.where(better, e_new, e_old)
+    return out
+
+
 # ------------------------------------------------------------------ Procrustes
 def orthogonal_procrustes_rows(A: Any, B: Any, weights: Any = None, *, n_iter: int = 200,
                                tol: float = 1e-12) -> np.ndarray:
@@ -632,7 +748,9 @@ def orthogonal_procrustes_rows(A: Any, B: Any, weights: Any = None, *, n_iter: i
     3 - d missing rows of A as unknowns ``Z``; alternately set ``Z`` to the model's
     prediction (the last rows of ``Q B`` for the current 3x3 orthogonal ``Q``) and
     ``Q`` to the polar factor of ``[A; Z] W B^T``. Each step cannot increase the
-    objective, but the iteration has stationary points that are not minima, so it
+    objective, but the iteration crawls where the points are nearly collinear, so
+    after a few steps Newton steps on the rotation finish it (:func:`_green_gower`);
+    and it has stationary points that are not minima, so it
     runs from the SVD solution and from that solution turned a quarter turn about
     each of its axes, vectorised over the batch, each problem until its relative
     change is below ``tol``, and the best of the four is kept (a problem's answer
@@ -645,7 +763,7 @@ def orthogonal_procrustes_rows(A: Any, B: Any, weights: Any = None, *, n_iter: i
     weights : array_like, shape (..., n) or (n,), optional
         Non-negative weights (e.g. visibility).
     n_iter : int
-        Maximum completion iterations (d < 3 only).
+        Maximum iterations, completion and Newton steps together (d < 3 only).
     tol : float
         Relative tolerance on the objective.
 
@@ -711,9 +829,24 @@ _QUARTER_TURNS = (np.eye(3), np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]),
                   np.array([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]]), np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]]))
 
 
-def _green_gower(A: np.ndarray, B: np.ndarray, Q: np.ndarray, n_iter: int, tol: float
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Green-Gower completion iterations for A (N, d, n) ~ Q[:, :d] B from Q (N, 3, 3).
+#: Green-Gower completion steps before the projection Procrustes switches to Newton steps.
+COMPLETION_STEPS = 3
+
+
+def _green_gower(A: np.ndarray, B: np.ndarray, Q: np.ndarray, n_iter: int, tol: float,
+                 n_completion: int = COMPLETION_STEPS) -> tuple[np.ndarray, np.ndarray]:
+    """Projection Procrustes for A (N, d, n) ~ Q[:, :d] B from Q (N, 3, 3): completion, then Newton.
+
+    ``n_completion`` Green-Gower completion steps (each a batched 3x3 SVD) take every
+    start into its basin; Newton steps on the rotation (:func:`rotation_newton_step`,
+    closed-form 3x3 arithmetic, kept only where they lower the objective) then finish
+    it (a completion step where a Newton step does not lower the objective). The
+    completion iteration converges linearly, and slowly where the points are
+    nearly collinear: measured on the held-out check's starts of a 53-point, 11-stick
+    figure (6 270 frames, four starts each), it took 43 steps on average and 200 (the
+    cap) on 1 %, and it stopped on the tolerance short of the minimum on 27 % of the
+    frames, which Newton steps from 3 completion steps reached lower (7 frames of the
+    6 270 ended higher, in another minimum), at a sixth of the time.
 
     Each problem stops on its own once a step lowers its objective by at most ``tol``
     relative to it (or to ``tr(B B^T)``), so one slow problem does not keep the whole
@@ -729,7 +862,7 @@ def _green_gower(A: np.ndarray, B: np.ndarray, Q: np.ndarray, n_iter: int, tol: 
 
     obj = objective(Q[:, :d], A, B)
     act = np.arange(Q.shape[0])
-    for _ in range(n_iter):
+    for _ in range(min(n_completion, n_iter)):
         Aa, Ba = A[act], B[act]
         Z = (Q[act] @ Ba)[:, d:, :]  # predicted missing rows
         U, _, Vt = np.linalg.svd(np.concatenate([Aa, Z], axis=-2) @ np.swapaxes(Ba, -1, -2))
@@ -740,7 +873,36 @@ def _green_gower(A: np.ndarray, B: np.ndarray, Q: np.ndarray, n_iter: int, tol: 
         obj[act] = cur
         act = act[~done]
         if not act.size:
+            return Q, obj
+    # |A - R B|^2 = |A|^2 + rotation_energy(R, A B^T, B B^T)
+    C_ab = A[act] @ np.swapaxes(B[act], -1, -2)
+    C_bb = B[act] @ np.swapaxes(B[act], -1, -2)
+    const = np.sum(A[act] * A[act], axis=(-1, -2))
+    R = Q[act, :d]
+    e = rotation_energy(R, C_ab, C_bb)
+    live = np.arange(act.size)
+    for _ in range(n_iter - n_completion):
+        Rn, en = rotation_newton_step(R[live], C_ab[live], C_bb[live], e[live], return_energy=True)
+        # Where the minimum is degenerate (two points fit exactly by a family of rotations) the
+        # Hessian is singular and a Newton step may not lower the objective: a completion step
+        # (which always may) is taken there instead.
+        stuck = np.flatnonzero(~(en < e[live]))
+        if stuck.size:
+            ix = act[live[stuck]]
+            Qs = _complete_rows(Rn[stuck])
+            Z = (Qs @ B[ix])[:, d:, :]
+            U, _, Vt = np.linalg.svd(np.concatenate([A[ix], Z], axis=-2) @ np.swapaxes(B[ix], -1, -2))
+            Rc = (U @ Vt)[:, :d]
+            ec = rotation_energy(Rc, C_ab[live[stuck]], C_bb[live[stuck]])
+            take = ec < en[stuck]
+            Rn[stuck[take]], en[stuck[take]] = Rc[take], ec[take]
+        done = e[live] - en <= tol * np.maximum(np.abs(e[live] + const[live]), scale[act[live]])
+        R[live], e[live] = Rn, en
+        live = live[~done]
+        if not live.size:
             break
+    Q[act] = _complete_rows(R)
+    obj[act] = e + const
     return Q, obj
 
 

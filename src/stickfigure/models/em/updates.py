@@ -35,12 +35,13 @@ Where the printed updates differ (docs/em.md has the derivations):
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 from scipy.linalg import solveh_banded
 from scipy.spatial.transform import Rotation
 
+from ...geometry import min_eig_sym3 as _min_eig_sym3
+from ...geometry import rotation_energy as _rotation_energy
+from ...geometry import rotation_newton_step as newton_step
 from .model import Observations, Priors, StickState, chain_degree
 
 __all__ = ["update_endpoints", "update_vertices", "update_phi", "update_motions", "update_local",
@@ -185,11 +186,6 @@ def _motion_statistics(st: StickState, obs: Observations, collapse: bool = False
     return a_bar, b_bar, C_ab, C_bb
 
 
-def _rotation_energy(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray) -> np.ndarray:
-    """``sum_n w_n |a_n - R b_n|^2`` (centred) up to a constant: ``-2 tr(R C_ab^T) + tr(R C_bb R^T)``."""
-    return np.sum((R @ C_bb - 2.0 * C_ab) * R, axis=(-1, -2))
-
-
 def _horn_matrix(C: np.ndarray) -> np.ndarray:
     """The 4x4 symmetric ``N`` with ``q^T N q = tr(R(q)^T C)`` for unit quaternions q = (w, x, y, z).
 
@@ -209,11 +205,6 @@ def _horn_matrix(C: np.ndarray) -> np.ndarray:
     N[..., 1, 3] = N[..., 3, 1] = c[..., 0, 2] + c[..., 2, 0]
     N[..., 2, 3] = N[..., 3, 2] = c[..., 1, 2] + c[..., 2, 1]
     return N
-
-
-def _trace3(M: np.ndarray) -> np.ndarray:
-    """Traces of 3x3 matrices (..., 3, 3) -> (...) (cheaper than np.trace on small batched arrays)."""
-    return M[..., 0, 0] + M[..., 1, 1] + M[..., 2, 2]
 
 
 def quat_to_rot(q: np.ndarray) -> np.ndarray:
@@ -287,102 +278,6 @@ def procrustes_step(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, *, n_oute
         q = np.where(nrm > 1e-300, q_new / np.maximum(nrm, 1e-300), q)
         Q = quat_to_rot(q)
     return Q[..., :D, :], q
-
-
-def _vee(M: np.ndarray) -> np.ndarray:
-    """(M23 - M32, M31 - M13, M12 - M21): ``tr([w]_x M) = w . vee(M)``."""
-    return np.stack([M[..., 1, 2] - M[..., 2, 1], M[..., 2, 0] - M[..., 0, 2], M[..., 0, 1] - M[..., 1, 0]], -1)
-
-
-def _solve3(H: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Batched 3x3 solve by cofactors (LAPACK's per-matrix overhead dominates at this size)."""
-    a, b_, c = H[..., 0, 0], H[..., 0, 1], H[..., 0, 2]
-    d, e, f = H[..., 1, 0], H[..., 1, 1], H[..., 1, 2]
-    g, h, i = H[..., 2, 0], H[..., 2, 1], H[..., 2, 2]
-    A, B, C = e * i - f * h, f * g - d * i, d * h - e * g
-    det = a * A + b_ * B + c * C
-    x0 = A * b[..., 0] + (c * h - b_ * i) * b[..., 1] + (b_ * f - c * e) * b[..., 2]
-    x1 = B * b[..., 0] + (a * i - c * g) * b[..., 1] + (c * d - a * f) * b[..., 2]
-    x2 = C * b[..., 0] + (b_ * g - a * h) * b[..., 1] + (a * e - b_ * d) * b[..., 2]
-    safe = np.where(np.abs(det) > 0, det, 1.0)
-    return np.stack([x0, x1, x2], -1) / safe[..., None], det
-
-
-def _rodrigues(w: np.ndarray) -> np.ndarray:
-    """exp([w]_x), shape (..., 3, 3), of rotation vectors w (..., 3) (scipy's Rotation)."""
-    out = np.zeros(w.shape[:-1] + (3, 3))
-    if out.size:
-        out[:] = Rotation.from_rotvec(w.reshape(-1, 3)).as_matrix().reshape(out.shape)
-    return out
-
-
-def _min_eig_sym3(H: np.ndarray) -> np.ndarray:
-    """Smallest eigenvalue of symmetric 3x3 matrices (closed form, trigonometric)."""
-    p1 = H[..., 0, 1] ** 2 + H[..., 0, 2] ** 2 + H[..., 1, 2] ** 2
-    q = _trace3(H) / 3.0
-    p2 = (H[..., 0, 0] - q) ** 2 + (H[..., 1, 1] - q) ** 2 + (H[..., 2, 2] - q) ** 2 + 2.0 * p1
-    p = np.sqrt(p2 / 6.0)
-    B = (H - q[..., None, None] * np.eye(3)) / np.where(p > 0, p, 1.0)[..., None, None]
-    r = 0.5 * (B[..., 0, 0] * (B[..., 1, 1] * B[..., 2, 2] - B[..., 1, 2] * B[..., 2, 1])
-               - B[..., 0, 1] * (B[..., 1, 0] * B[..., 2, 2] - B[..., 1, 2] * B[..., 2, 0])
-               + B[..., 0, 2] * (B[..., 1, 0] * B[..., 2, 1] - B[..., 1, 1] * B[..., 2, 0]))
-    phi = np.arccos(np.clip(r, -1.0, 1.0)) / 3.0
-    return q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
-
-
-def newton_model(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Gradient g (..., 3) and Hessian H (..., 3, 3) of ``w -> f(R exp([w]_x))`` at w = 0.
-
-    ``f(R) = tr(R C_bb R^T) - 2 tr(R C_ab^T)`` for R (..., D, 3) with orthonormal
-    rows. With ``P = R^T R`` (symmetric, trace D), ``N = C_ab^T R`` and C = C_bb
-    (symmetric): ``g = vee(C P - P C) - 2 vee(N)`` and
-    ``H = -2 T + (M - tr(M) I) - 2 (sym(N) - tr(N) I)``, ``M = C P + P C``,
-    ``T_ab = tr(P K_a C K_b)`` (K_a = [e_a]_x; docs/em.md). Expanding the two
-    Levi-Civita symbols of ``T`` (``(K_a)_jk = eps_jka``) gives, symmetrised,
-    ``T = (tr(PC) - D tr C) I - M + D C + tr(C) P``, so
-    ``H = 3 M - 2 D C - 2 tr(C) P - 2 sym(N) + (2 tr N + 2 D tr C - 4 tr(PC)) I``:
-    element-wise products of 3x3 arrays only (batched 3x3 matrix products cost
-    more than the arithmetic in numpy). Tested against finite differences.
-    """
-    D = R.shape[-2]
-    P = np.swapaxes(R, -1, -2) @ R
-    N = np.swapaxes(C_ab, -1, -2) @ R
-    CP = C_bb @ P
-    PC = np.swapaxes(CP, -1, -2)
-    g = _vee(CP - PC) - 2.0 * _vee(N)
-    trC = _trace3(C_bb)
-    diag = 2.0 * _trace3(N) + 2.0 * D * trC - 4.0 * _trace3(CP)
-    H = (3.0 * (CP + PC) - (2.0 * D) * C_bb - 2.0 * trC[..., None, None] * P - (N + np.swapaxes(N, -1, -2))
-         + diag[..., None, None] * np.eye(3))
-    return g, H
-
-
-def newton_step(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, energy: np.ndarray | None = None,
-                *, return_energy: bool = False) -> Any:
-    """One Newton step for ``f(R) = tr(R C_bb R^T) - 2 tr(R C_ab^T)`` on the rotations ``R Q``.
-
-    ``Q = exp([w]_x)`` with w from the quadratic model of :func:`newton_model`.
-    Where H is not positive definite it is shifted by its smallest eigenvalue
-    (Levenberg-Marquardt), and steps are capped at 0.5 rad; the result is kept
-    only where f decreased. ``energy``: f at R if known; with ``return_energy``
-    the new f is returned too.
-    """
-    g, H = newton_model(R, C_ab, C_bb)
-    lam = _min_eig_sym3(H)
-    mu = np.maximum(0.0, -lam) + 1e-6 * np.abs(H).max(axis=(-1, -2)) + 1e-300
-    w, _ = _solve3(H + mu[..., None, None] * np.eye(3), -g)
-    w = np.where(np.all(np.isfinite(w), axis=-1, keepdims=True), w, 0.0)
-    # Long steps leave the region where the quadratic model holds.
-    nrm = np.sqrt(np.sum(w * w, axis=-1, keepdims=True))
-    w = w * np.minimum(1.0, 0.5 / np.maximum(nrm, 1e-300))
-    R_new = R @ _rodrigues(w)
-    e_new = _rotation_energy(R_new, C_ab, C_bb)
-    e_old = _rotation_energy(R, C_ab, C_bb) if energy is None else energy
-    better = e_new < e_old
-    out = np.where(better[..., None, None], R_new, R)
-    if return_energy:
-        return out, np.where(better, e_new, e_old)
-    return out
 
 
 #: A stick whose smallest principal spread is below this fraction of its largest is "flat":
