@@ -836,6 +836,10 @@ def _cmu_isometric(data_dir):
 
 
 @pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="re-roll (docs/em.md section 11): with numpy 2.4.6, scipy 1.17.1 and "
+                                       "scikit-learn 1.9.1 (what a fresh install takes now) the search takes "
+                                       "another path from the same initial groups: ARI 0.530, edge F1 "
+                                       "0.56 (15 sticks, 0.510 / 0.56 before the Newton-finished Procrustes)")
 def test_cmu_isometric_view_follows_the_segments(data_dir):
     # Real-data known answer: CMU 85_02 (41 markers, 30 Hz, 203 frames), isometric view, scored
     # against the marker set's 15 segments. Measured with cuts across a stick's major axis only
