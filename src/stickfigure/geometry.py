@@ -1,4 +1,4 @@
-"""Shared geometry: affine factorisation with missing data, Procrustes fits, subspace affinities.
+"""Shared geometry: affine factorisation with missing data, Procrustes fits, rotation energies, subspace affinities.
 
 Every method builds on these functions instead of writing its own copy. All of
 them are vectorised over frames (and, where it matters, over points and sticks)
