@@ -276,7 +276,7 @@ def test_orthogonal_procrustes_rows_fits_two_points_exactly():
     A = Rotation.random(300, random_state=2).as_matrix()[:, :2] @ B
     R = g.orthogonal_procrustes_rows(A, B)
     np.testing.assert_allclose(R @ np.swapaxes(R, 1, 2), np.broadcast_to(np.eye(2), (300, 2, 2)), atol=1e-9)
-    # (the iteration converges linearly: what is left is far below the points' spread, about 4)
+    # (what is left is far below the points' spread, about 4)
     assert np.max(np.sum((A - R @ B) ** 2, axis=(1, 2))) < 1e-3
 
 

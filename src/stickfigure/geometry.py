@@ -705,7 +705,7 @@ def rotation_newton_model(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray) -> 
 
 
 def rotation_newton_step(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, energy: np.ndarray | None = None,
-                *, return_energy: bool = False) -> Any:
+                         *, return_energy: bool = False) -> Any:
     """One Newton step for ``f(R) = tr(R C_bb R^T) - 2 tr(R C_ab^T)`` on the rotations ``R Q``.
 
     ``Q = exp([w]_x)`` with w from the quadratic model of :func:`rotation_newton_model`.
@@ -845,8 +845,8 @@ def _green_gower(A: np.ndarray, B: np.ndarray, Q: np.ndarray, n_iter: int, tol: 
     nearly collinear: measured on the held-out check's starts of a 53-point, 11-stick
     figure (6 270 frames, four starts each), it took 43 steps on average and 200 (the
     cap) on 1 %, and it stopped on the tolerance short of the minimum on 27 % of the
-    frames, which Newton steps from 3 completion steps reached lower (7 frames of the
-    6 270 ended higher, in another minimum), at a sixth of the time.
+    frames, which Newton steps from 3 completion steps reached lower (none ended
+    higher), in a quarter of the time (docs/em.md section 11).
 
     Each problem stops on its own once a step lowers its objective by at most ``tol``
     relative to it (or to ``tr(B B^T)``), so one slow problem does not keep the whole
@@ -864,9 +864,7 @@ def _green_gower(A: np.ndarray, B: np.ndarray, Q: np.ndarray, n_iter: int, tol: 
     act = np.arange(Q.shape[0])
     for _ in range(min(n_completion, n_iter)):
         Aa, Ba = A[act], B[act]
-        Z = (Q[act] @ Ba)[:, d:, :]  # predicted missing rows
-        U, _, Vt = np.linalg.svd(np.concatenate([Aa, Z], axis=-2) @ np.swapaxes(Ba, -1, -2))
-        Qa = U @ Vt
+        Qa = _completion_step(Aa, Ba, Q[act])
         Q[act] = Qa
         cur = objective(Qa[:, :d], Aa, Ba)
         done = obj[act] - cur <= tol * np.maximum(np.abs(obj[act]), scale[act])
@@ -889,10 +887,7 @@ def _green_gower(A: np.ndarray, B: np.ndarray, Q: np.ndarray, n_iter: int, tol: 
         stuck = np.flatnonzero(~(en < e[live]))
         if stuck.size:
             ix = act[live[stuck]]
-            Qs = _complete_rows(Rn[stuck])
-            Z = (Qs @ B[ix])[:, d:, :]
-            U, _, Vt = np.linalg.svd(np.concatenate([A[ix], Z], axis=-2) @ np.swapaxes(B[ix], -1, -2))
-            Rc = (U @ Vt)[:, :d]
+            Rc = _completion_step(A[ix], B[ix], _complete_rows(Rn[stuck]))[:, :d]
             ec = rotation_energy(Rc, C_ab[live[stuck]], C_bb[live[stuck]])
             take = ec < en[stuck]
             Rn[stuck[take]], en[stuck[take]] = Rc[take], ec[take]
@@ -904,6 +899,14 @@ def _green_gower(A: np.ndarray, B: np.ndarray, Q: np.ndarray, n_iter: int, tol: 
     Q[act] = _complete_rows(R)
     obj[act] = e + const
     return Q, obj
+
+
+def _completion_step(A: np.ndarray, B: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """One Green-Gower completion step for A (N, d, n) ~ Q[:, :d] B: the missing rows of A set
+    to their prediction ``(Q B)[d:]``, then the polar factor of ``[A; Z] B^T`` (N, 3, 3)."""
+    Z = (Q @ B)[:, A.shape[-2]:, :]
+    U, _, Vt = np.linalg.svd(np.concatenate([A, Z], axis=-2) @ np.swapaxes(B, -1, -2))
+    return U @ Vt
 
 
 def _complete_rows(R: np.ndarray) -> np.ndarray:
