@@ -274,13 +274,81 @@ def test_newton_derivatives_match_finite_differences():
                       <= U._rotation_energy(R, Ca, C_bb) + 1e-12)
 
 
-def test_horn_matrix_and_quaternions():
+def test_quaternions_round_trip():
     R = Rotation.random(50, random_state=0).as_matrix()
     q = U.rot_to_quat(R)
     np.testing.assert_allclose(U.quat_to_rot(q), R, atol=1e-12)
-    C = np.random.default_rng(0).normal(size=(50, 3, 3))
-    np.testing.assert_allclose(np.einsum("ni,nij,nj->n", q, U._horn_matrix(C), q), np.sum(R * C, axis=(1, 2)),
-                               atol=1e-12)
+
+
+def _horn(C):
+    """Horn's 4x4 matrix N with q^T N q = tr(R(q)^T C) (reference for the compiled loop)."""
+    c = C
+    tr = c[..., 0, 0] + c[..., 1, 1] + c[..., 2, 2]
+    rows = [[tr, c[..., 2, 1] - c[..., 1, 2], c[..., 0, 2] - c[..., 2, 0], c[..., 1, 0] - c[..., 0, 1]],
+            [None, 2 * c[..., 0, 0] - tr, c[..., 0, 1] + c[..., 1, 0], c[..., 0, 2] + c[..., 2, 0]],
+            [None, None, 2 * c[..., 1, 1] - tr, c[..., 1, 2] + c[..., 2, 1]],
+            [None, None, None, 2 * c[..., 2, 2] - tr]]
+    N = np.empty(C.shape[:-2] + (4, 4))
+    for a in range(4):
+        for b in range(a, 4):
+            N[..., a, b] = N[..., b, a] = rows[a][b]
+    return N
+
+
+def test_compiled_rotation_loops_match_numpy_references():
+    # geometry.rotation_energy / rotation_newton_step and updates.procrustes_step run one matrix at
+    # a time in compiled loops (stickfigure._rotation_kernels); each against the closed forms in numpy.
+    rng = np.random.default_rng(11)
+    n = 40
+    B = rng.normal(size=(n, 3, 7))
+    C_bb = B @ np.swapaxes(B, 1, 2)
+    Q = Rotation.random(n, random_state=3).as_matrix()
+    for D in (2, 3):
+        R = Q[:, :D]
+        C_ab = rng.normal(size=(n, D, 7)) @ np.swapaxes(B, 1, 2)
+        e = U._rotation_energy(R, C_ab, C_bb)
+        np.testing.assert_allclose(e, np.sum((R @ C_bb - 2.0 * C_ab) * R, axis=(1, 2)), rtol=1e-12, atol=1e-9)
+        # broadcasting over batch axes, as numpy would
+        assert U._rotation_energy(R.reshape(4, 10, D, 3), C_ab.reshape(4, 10, D, 3), C_bb[0]).shape == (4, 10)
+        # Newton: w = -(H + mu I)^-1 g, capped at 0.5 rad, kept where the energy drops
+        g, H = G.rotation_newton_model(R, C_ab, C_bb)
+        lam = np.linalg.eigvalsh(H)[:, 0]
+        mu = np.maximum(0.0, -lam) + 1e-6 * np.abs(H).max(axis=(1, 2)) + 1e-300
+        w = -np.linalg.solve(H + mu[:, None, None] * np.eye(3), g[..., None])[..., 0]
+        w *= np.minimum(1.0, 0.5 / np.linalg.norm(w, axis=1))[:, None]
+        R_ref = R @ Rotation.from_rotvec(w).as_matrix()
+        e_ref = np.sum((R_ref @ C_bb - 2.0 * C_ab) * R_ref, axis=(1, 2))
+        keep = e_ref < e
+        R_ref = np.where(keep[:, None, None], R_ref, R)
+        R_new, e_new = U.newton_step(R, C_ab, C_bb, return_energy=True)
+        assert keep.sum() > n // 2  # the comparison covers taken steps
+        np.testing.assert_allclose(R_new, R_ref, atol=1e-9)
+        np.testing.assert_allclose(e_new, np.minimum(e, e_ref), rtol=1e-10, atol=1e-9)
+        # Procrustes: the power iteration on Horn's N(C) + sigma I from the current quaternion
+        q = U.rot_to_quat(Q)
+        C = C_ab if D == 3 else np.concatenate([C_ab, Q[:, 2:3] @ C_bb], axis=1)
+        sigma = np.sqrt(3.0 * np.sum(C * C, axis=(1, 2)))
+        Mk = np.linalg.matrix_power(_horn(C) + sigma[:, None, None] * np.eye(4), 8)
+        q_ref = (Mk @ q[..., None])[..., 0]
+        q_ref /= np.linalg.norm(q_ref, axis=1, keepdims=True)
+        R_p, q_p = U.procrustes_step(R, C_ab, C_bb, quat=q)
+        np.testing.assert_allclose(q_p, q_ref, atol=1e-9)
+        np.testing.assert_allclose(R_p, U.quat_to_rot(q_ref)[:, :D], atol=1e-9)
+        assert np.all(U._rotation_energy(R_p, C_ab, C_bb) <= e + 1e-9)
+    # D = 3 with many squarings: the proper rotation maximising tr(R^T C_ab) (Kabsch)
+    C3 = rng.normal(size=(n, 3, 3))
+    U_, _, Vt = np.linalg.svd(C3)
+    d = np.sign(np.linalg.det(U_ @ Vt))
+    kabsch = U_ @ (np.eye(3) * np.stack([np.ones(n), np.ones(n), d], 1)[:, None, :]) @ Vt
+    R_k, _ = U.procrustes_step(Q, C3, np.zeros((n, 3, 3)), n_square=8)
+    np.testing.assert_allclose(R_k, kabsch, atol=1e-6)
+    # the closed-form polar factor of 2x3 matrices (rank-1 ones fall back to the SVD's)
+    C2 = rng.normal(size=(n, 2, 3))
+    C2[0, 1] = 2.0 * C2[0, 0]
+    U_, _, Vt = np.linalg.svd(C2, full_matrices=False)
+    np.testing.assert_allclose(U._polar_rows(C2), U_ @ Vt, atol=1e-10)
+    with pytest.raises(ValueError, match=r"\(\.\.\., D, 3\)"):
+        U._rotation_energy(Q[:, :2], C3, C_bb)
 
 
 def test_block_score_is_the_change_of_the_full_objective(scene):

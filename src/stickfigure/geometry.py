@@ -24,6 +24,7 @@ import scipy.linalg
 from scipy.linalg import solveh_banded
 from scipy.spatial.transform import Rotation
 
+from . import _rotation_kernels as _rk
 from ._validation import as_float_array, check_random_state
 
 __all__ = [
@@ -626,9 +627,30 @@ def fit_motions(
 # The energy of a rotation with orthonormal rows against weighted, centred sources, and Newton
 # steps on it (closed-form 3x3 arithmetic, batched): shared by the projection Procrustes below
 # and the EM's motion update (models/em/updates.py).
+def _flat_batch(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray
+                ) -> tuple[tuple[int, ...], np.ndarray, np.ndarray, np.ndarray]:
+    """The batch shape and C-contiguous float64 (N, D, 3), (N, D, 3), (N, 3, 3) copies for the compiled loops."""
+    D = R.shape[-2]
+    if R.shape[-1] != 3 or C_ab.shape[-2:] != (D, 3) or C_bb.shape[-2:] != (3, 3):
+        raise ValueError(f"R, C_ab and C_bb must have shapes (..., D, 3), (..., D, 3) and (..., 3, 3), "
+                         f"got {R.shape}, {C_ab.shape} and {C_bb.shape}")
+    batch = np.broadcast_shapes(R.shape[:-2], C_ab.shape[:-2], C_bb.shape[:-2])
+
+    def flat(x: np.ndarray, tail: tuple[int, int]) -> np.ndarray:
+        return np.ascontiguousarray(np.broadcast_to(x, batch + tail), dtype=float).reshape((-1,) + tail)
+
+    return batch, flat(R, (D, 3)), flat(C_ab, (D, 3)), flat(C_bb, (3, 3))
+
+
 def rotation_energy(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray) -> np.ndarray:
-    """``sum_n w_n |a_n - R b_n|^2`` (centred) up to a constant: ``-2 tr(R C_ab^T) + tr(R C_bb R^T)``."""
-    return np.sum((R @ C_bb - 2.0 * C_ab) * R, axis=(-1, -2))
+    """``sum_n w_n |a_n - R b_n|^2`` (centred) up to a constant: ``-2 tr(R C_ab^T) + tr(R C_bb R^T)``.
+
+    R, C_ab (..., D, 3) and C_bb (..., 3, 3) broadcast over their batch axes; returns (...).
+    """
+    batch, R, C_ab, C_bb = _flat_batch(R, C_ab, C_bb)
+    out = np.empty(R.shape[0])
+    _rk.rotation_energy(R, C_ab, C_bb, out)
+    return out.reshape(batch)
 
 
 def _trace3(M: np.ndarray) -> np.ndarray:
@@ -639,20 +661,6 @@ def _trace3(M: np.ndarray) -> np.ndarray:
 def _vee(M: np.ndarray) -> np.ndarray:
     """(M23 - M32, M31 - M13, M12 - M21): ``tr([w]_x M) = w . vee(M)``."""
     return np.stack([M[..., 1, 2] - M[..., 2, 1], M[..., 2, 0] - M[..., 0, 2], M[..., 0, 1] - M[..., 1, 0]], -1)
-
-
-def _solve3(H: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Batched 3x3 solve by cofactors (LAPACK's per-matrix overhead dominates at this size)."""
-    a, b_, c = H[..., 0, 0], H[..., 0, 1], H[..., 0, 2]
-    d, e, f = H[..., 1, 0], H[..., 1, 1], H[..., 1, 2]
-    g, h, i = H[..., 2, 0], H[..., 2, 1], H[..., 2, 2]
-    A, B, C = e * i - f * h, f * g - d * i, d * h - e * g
-    det = a * A + b_ * B + c * C
-    x0 = A * b[..., 0] + (c * h - b_ * i) * b[..., 1] + (b_ * f - c * e) * b[..., 2]
-    x1 = B * b[..., 0] + (a * i - c * g) * b[..., 1] + (c * d - a * f) * b[..., 2]
-    x2 = C * b[..., 0] + (b_ * g - a * h) * b[..., 1] + (a * e - b_ * d) * b[..., 2]
-    safe = np.where(np.abs(det) > 0, det, 1.0)
-    return np.stack([x0, x1, x2], -1) / safe[..., None], det
 
 
 def rotation_from_vectors(w: np.ndarray) -> np.ndarray:
@@ -710,25 +718,21 @@ def rotation_newton_step(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, ener
 
     ``Q = exp([w]_x)`` with w from the quadratic model of :func:`rotation_newton_model`.
     Where H is not positive definite it is shifted by its smallest eigenvalue
-    (Levenberg-Marquardt), and steps are capped at 0.5 rad; the result is kept
-    only where f decreased. ``energy``: f at R if known; with ``return_energy``
-    the new f is returned too.
+    (Levenberg-Marquardt; :func:`min_eig_sym3`), and steps are capped at 0.5 rad;
+    the result is kept only where f decreased. ``energy``: f at R if known; with
+    ``return_energy`` the new f is returned too. The arithmetic runs one matrix at a
+    time in a compiled loop (:mod:`stickfigure._rotation_kernels`; the same closed
+    forms as :func:`rotation_newton_model`, which the tests compare it with).
     """
-    g, H = rotation_newton_model(R, C_ab, C_bb)
-    lam = min_eig_sym3(H)
-    mu = np.maximum(0.0, -lam) + 1e-6 * np.abs(H).max(axis=(-1, -2)) + 1e-300
-    w, _ = _solve3(H + mu[..., None, None] * np.eye(3), -g)
-    w = np.where(np.all(np.isfinite(w), axis=-1, keepdims=True), w, 0.0)
-    # Long steps leave the region where the quadratic model holds.
-    nrm = np.sqrt(np.sum(w * w, axis=-1, keepdims=True))
-    w = w * np.minimum(1.0, 0.5 / np.maximum(nrm, 1e-300))
-    R_new = R @ rotation_from_vectors(w)
-    e_new = rotation_energy(R_new, C_ab, C_bb)
-    e_old = rotation_energy(R, C_ab, C_bb) if energy is None else energy
-    better = e_new < e_old
-    out = np.where(better[..., None, None], R_new, R)
+    batch, Rf, Ca, Cb = _flat_batch(R, C_ab, C_bb)
+    e_old = rotation_energy(Rf, Ca, Cb) if energy is None else \
+        np.ascontiguousarray(np.broadcast_to(energy, batch), dtype=float).reshape(-1)
+    R_out = np.empty_like(Rf)
+    e_out = np.empty(Rf.shape[0])
+    _rk.rotation_newton_step(Rf, Ca, Cb, e_old, R_out, e_out)
+    out = R_out.reshape(batch + Rf.shape[1:])
     if return_energy:
-        return out, np.where(better, e_new, e_old)
+        return out, e_out.reshape(batch)
     return out
 
 

@@ -41,6 +41,8 @@ import numpy as np
 from scipy import sparse
 from scipy.special import digamma, gammaln
 
+from . import _point_kernels as _pk
+
 __all__ = ["Observations", "Priors", "Ghosts", "StickState", "Design", "normalise", "objective_terms",
            "objective", "structure_log_prior"]
 
@@ -169,19 +171,16 @@ class Ghosts:
 
 @dataclass
 class Design:
-    """Sparse incidence matrices that turn per-point sums into matrix products.
+    """Per-stick sums over the observed entries of one assignment R.
 
-    Built once per assignment R (and data); every EM sweep then touches the
-    points only through a few sparse products with ``nnz ~ P F D``.
+    Built once per assignment (and data); every EM sweep then touches the points
+    only through the compiled passes over the P x F entries of
+    :mod:`._point_kernels`.
 
     Attributes
     ----------
     onehot : sparse (S, P)
         Point-to-stick incidence.
-    vis : sparse (S F, P)
-        Row ``s F + f`` holds ``o_pf`` for the points of stick s.
-    obs_w : sparse (S F D, P)
-        Row ``(s F + f) D + d`` holds ``o_pf w_pfd`` for the points of stick s.
     n : ndarray (S, F)
         Visible points of each stick in each frame.
     s_w : ndarray (S, F, D)
@@ -194,30 +193,24 @@ class Design:
     n_sticks: int
     obs: Observations = field(repr=False)
     onehot: sparse.csr_matrix = field(repr=False)
-    vis: sparse.csr_matrix = field(repr=False)
-    vis_T: sparse.csr_matrix = field(repr=False)
-    obs_w: sparse.csr_matrix = field(repr=False)
-    obs_w_T: sparse.csr_matrix = field(repr=False)
     n: np.ndarray = field(repr=False)
     s_w: np.ndarray = field(repr=False)
     s_ww: np.ndarray = field(repr=False)
+    _args: tuple = field(repr=False, default=())
 
     @staticmethod
     def of(labels: np.ndarray, n_sticks: int, obs: Observations) -> "Design":
         P, F, D = obs.w.shape
         S = n_sticks
+        labels = np.ascontiguousarray(labels, dtype=np.int64)
         onehot = sparse.csr_matrix((np.ones(P), (labels, np.arange(P))), shape=(S, P))
-        pp, ff = np.nonzero(obs.mask)
-        rows = labels[pp] * F + ff
-        vis = sparse.csr_matrix((np.ones(pp.size), (rows, pp)), shape=(S * F, P))
-        rows_w = (rows[:, None] * D + np.arange(D)[None, :]).ravel()
-        obs_w = sparse.csr_matrix((obs.w[pp, ff].ravel(), (rows_w, np.repeat(pp, D))), shape=(S * F * D, P))
-        n = np.asarray(vis.sum(axis=1)).reshape(S, F)
-        s_w = np.asarray(obs_w.sum(axis=1)).reshape(S, F, D)
-        ww = np.sum(obs.w * obs.w, axis=(1, 2))
+        vis = (obs.mask > 0).astype(float)
+        n = np.asarray(onehot @ vis).reshape(S, F)
+        s_w = np.asarray(onehot @ (obs.w * vis[..., None]).reshape(P, F * D)).reshape(S, F, D)
+        ww = np.sum(obs.w * obs.w * vis[..., None], axis=(1, 2))
         s_ww = np.bincount(labels, weights=ww, minlength=S)
-        return Design(labels=labels, n_sticks=S, obs=obs, onehot=onehot, vis=vis, vis_T=vis.T.tocsr(),
-                      obs_w=obs_w, obs_w_T=obs_w.T.tocsr(), n=n, s_w=s_w, s_ww=s_ww)
+        args = (labels, np.ascontiguousarray(obs.mask, dtype=float), np.ascontiguousarray(obs.w, dtype=float))
+        return Design(labels=labels, n_sticks=S, obs=obs, onehot=onehot, n=n, s_w=s_w, s_ww=s_ww, _args=args)
 
     def stick_sum(self, x: np.ndarray) -> np.ndarray:
         """Sum ``x`` (P, ...) over the points of each stick -> (S, ...)."""
@@ -233,23 +226,24 @@ class Design:
         s_l : (S, F, 3), s_ll : (S, F, 3, 3), s_wl : (S, F, D, 3)
         """
         S, F, D = self.s_w.shape
-        P = local.shape[0]
-        LL = (local[:, :, None] * local[:, None, :]).reshape(P, 9)
-        s_l = (self.vis @ local).reshape(S, F, 3)
-        s_ll = (self.vis @ LL).reshape(S, F, 3, 3)
-        s_wl = (self.obs_w @ local).reshape(S, F, D, 3)
+        s_l, s_ll, s_wl = np.empty((S, F, 3)), np.empty((S, F, 3, 3)), np.empty((S, F, D, 3))
+        _pk.point_moments(*self._args, np.ascontiguousarray(local, dtype=float), s_l, s_ll, s_wl)
         return s_l, s_ll, s_wl
 
     def residual_sq(self, rot: np.ndarray, trans: np.ndarray, local: np.ndarray) -> np.ndarray:
         """``sum_{p in s, f} o_pf |w_pf - R_sf l_p - t_sf|^2`` for every stick, shape (S,)."""
-        s_l, s_ll, s_wl = self.point_stats(local)
-        cross = np.sum(rot * s_wl, axis=(1, 2, 3)) + np.sum(trans * self.s_w, axis=(1, 2))  # (S,)
-        RtR = np.swapaxes(rot, -1, -2) @ rot
-        Rl = (rot @ s_l[..., None])[..., 0]  # (S, F, D)
-        quad = np.sum(RtR * s_ll, axis=(1, 2, 3)) + 2.0 * np.sum(trans * Rl, axis=(1, 2)) \
-            + np.sum(self.n * np.sum(trans * trans, axis=2), axis=1)
-        out = self.s_ww - 2.0 * cross + quad
-        return np.maximum(out, 0.0)
+        out = np.empty(self.n_sticks)
+        _pk.residual_sq(*self._args, np.ascontiguousarray(rot, dtype=float),
+                        np.ascontiguousarray(trans, dtype=float), np.ascontiguousarray(local, dtype=float), out)
+        return out
+
+    def local_normal_equations(self, rot: np.ndarray, trans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``sum_f o_pf R^T R`` (P, 3, 3) and ``sum_f o_pf R^T (w_pf - t)`` (P, 3), R and t of p's stick."""
+        P = self.labels.size
+        H, b = np.empty((P, 3, 3)), np.empty((P, 3))
+        _pk.local_normal_equations(*self._args, np.ascontiguousarray(rot, dtype=float),
+                                   np.ascontiguousarray(trans, dtype=float), H, b)
+        return H, b
 
 
 @dataclass
@@ -333,8 +327,11 @@ class StickState:
 
     def end_predictions(self) -> np.ndarray:
         """``R_{s(i) f} k_i + t_{s(i) f}``, shape (ES, F, D)."""
-        s = self.stick_of_end
-        return (self.rot[s] @ self.ends[:, None, :, None])[..., 0] + self.trans[s]
+        S, F, D = self.trans.shape
+        E = self.ends_per_stick
+        # One (F D, 3) x (3, E) product per stick (batched 3-vectors through matmul are slower).
+        pred = np.matmul(self.rot.reshape(S, F * D, 3), np.swapaxes(self.ends.reshape(S, E, 3), 1, 2))
+        return (np.swapaxes(pred, 1, 2).reshape(S, E, F, D) + self.trans[:, None]).reshape(S * E, F, D)
 
 
 def chain_degree(F: int) -> np.ndarray:

@@ -39,6 +39,7 @@ import numpy as np
 from scipy.linalg import solveh_banded
 from scipy.spatial.transform import Rotation
 
+from ... import _rotation_kernels as _rk
 from ...geometry import min_eig_sym3 as _min_eig_sym3
 from ...geometry import rotation_energy as _rotation_energy
 from ...geometry import rotation_newton_step as newton_step
@@ -154,13 +155,14 @@ def _motion_statistics(st: StickState, obs: Observations, collapse: bool = False
     ends = st.ends.reshape(S, E, 3)
     # Per stick: the endpoints' total weight (S, 1), weighted target sum (S, F, D), weighted
     # source sum (S, 3), cross moment (S, F, D, 3) and second moment (S, 3, 3).
-    if not collapse:  # the paper's M-step (its operations in their order: results unchanged)
+    if not collapse:  # the paper's M-step
         tm = st.tau_m
         mue = st.mu_e.reshape(S, E, F, D)
         w_sum = E * tm
         t_sum = tm * mue.sum(axis=1)
         k_sum = tm * ends.sum(axis=1)
-        e_cross = tm * sum(mue[:, e, :, :, None] * ends[:, e, None, None, :] for e in range(E))
+        # sum_e mu(e) k_e^T as one (F D, E) x (E, 3) product per stick
+        e_cross = tm * np.matmul(mue.transpose(0, 2, 3, 1).reshape(S, F * D, E), ends).reshape(S, F, D, 3)
         kk = tm * (np.swapaxes(ends, 1, 2) @ ends)
     else:
         a = (st.alpha / st.beta)[st.vertex_of]
@@ -169,8 +171,8 @@ def _motion_statistics(st: StickState, obs: Observations, collapse: bool = False
         w_sum = wm.sum(axis=1)[:, None]
         t_sum = np.einsum("se,sefd->sfd", wm, tgt)
         k_sum = (wm[..., None] * ends).sum(axis=1)
-        e_cross = sum(wm[:, e, None, None, None] * tgt[:, e, :, :, None] * ends[:, e, None, None, :]
-                      for e in range(E))
+        wt = (wm[:, :, None, None] * tgt).transpose(0, 2, 3, 1).reshape(S, F * D, E)
+        e_cross = np.matmul(wt, ends).reshape(S, F, D, 3)
         kk = np.einsum("se,sej,sek->sjk", wm, ends, ends)
     W0 = tw * n + w_sum  # (S, F)
     a_bar = (tw * s_w + t_sum) / W0[..., None]
@@ -184,27 +186,6 @@ def _motion_statistics(st: StickState, obs: Observations, collapse: bool = False
         nb[:, :-1] += st.rot[:, 1:]
         C_ab = C_ab + np.asarray(kappa, float)[:, None, None, None] * nb
     return a_bar, b_bar, C_ab, C_bb
-
-
-def _horn_matrix(C: np.ndarray) -> np.ndarray:
-    """The 4x4 symmetric ``N`` with ``q^T N q = tr(R(q)^T C)`` for unit quaternions q = (w, x, y, z).
-
-    (Horn 1987.) Maximising ``tr(R^T C)`` over proper rotations is then the top
-    eigenvector problem of N.
-    """
-    c = C
-    N = np.empty(C.shape[:-2] + (4, 4))
-    N[..., 0, 0] = c[..., 0, 0] + c[..., 1, 1] + c[..., 2, 2]
-    N[..., 1, 1] = c[..., 0, 0] - c[..., 1, 1] - c[..., 2, 2]
-    N[..., 2, 2] = -c[..., 0, 0] + c[..., 1, 1] - c[..., 2, 2]
-    N[..., 3, 3] = -c[..., 0, 0] - c[..., 1, 1] + c[..., 2, 2]
-    N[..., 0, 1] = N[..., 1, 0] = c[..., 2, 1] - c[..., 1, 2]
-    N[..., 0, 2] = N[..., 2, 0] = c[..., 0, 2] - c[..., 2, 0]
-    N[..., 0, 3] = N[..., 3, 0] = c[..., 1, 0] - c[..., 0, 1]
-    N[..., 1, 2] = N[..., 2, 1] = c[..., 0, 1] + c[..., 1, 0]
-    N[..., 1, 3] = N[..., 3, 1] = c[..., 0, 2] + c[..., 2, 0]
-    N[..., 2, 3] = N[..., 3, 2] = c[..., 1, 2] + c[..., 2, 1]
-    return N
 
 
 def quat_to_rot(q: np.ndarray) -> np.ndarray:
@@ -246,38 +227,22 @@ def procrustes_step(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, *, n_oute
     ``quat`` (..., 4), the quaternion of the current rotation, saves converting R.
     Returns the new R and its quaternion.
 
-    Matrix squaring keeps it to a few batched 4x4 products: a batched 3x3 SVD
+    Matrix squaring keeps it to a few 4x4 products: a batched 3x3 SVD
     (what :func:`stickfigure.geometry.orthogonal_procrustes_rows` uses) costs about
     5 us per matrix in LAPACK, 100x more, and this runs on every (stick, frame)
-    pair in every EM iteration.
+    pair in every EM iteration. The loop over the pairs is compiled
+    (:mod:`stickfigure._rotation_kernels`).
     """
     D = R.shape[-2]
-    if quat is None:
-        Q = complete_rotation(R)
-        q = rot_to_quat(Q)
-    else:
-        q = quat
-        Q = quat_to_rot(q)
-    eye4 = np.eye(4)
-    for _ in range(n_outer if D == 2 else 1):
-        if D == 2:
-            r3 = Q[..., 2, :]
-            C = np.concatenate([C_ab, (r3[..., None, :] @ C_bb)], axis=-2)
-        else:
-            C = C_ab
-        N = _horn_matrix(C)
-        sigma = np.sqrt(3.0 * np.sum(C * C, axis=(-1, -2)))
-        M = N + sigma[..., None, None] * eye4
-        for _ in range(n_square):
-            M = M @ M
-            # PSD: the trace bounds every entry; rescaling keeps the powers finite.
-            tr = M[..., 0, 0] + M[..., 1, 1] + M[..., 2, 2] + M[..., 3, 3]
-            M = M / np.maximum(tr, 1e-300)[..., None, None]
-        q_new = (M @ q[..., None])[..., 0]
-        nrm = np.linalg.norm(q_new, axis=-1, keepdims=True)
-        q = np.where(nrm > 1e-300, q_new / np.maximum(nrm, 1e-300), q)
-        Q = quat_to_rot(q)
-    return Q[..., :D, :], q
+    batch = np.broadcast_shapes(R.shape[:-2], C_ab.shape[:-2], C_bb.shape[:-2])
+    q = rot_to_quat(complete_rotation(R)) if quat is None else quat
+    q = np.ascontiguousarray(np.broadcast_to(q, batch + (4,)), dtype=float).reshape(-1, 4)
+    Ca = np.ascontiguousarray(np.broadcast_to(C_ab, batch + (D, 3)), dtype=float).reshape(-1, D, 3)
+    Cb = np.ascontiguousarray(np.broadcast_to(C_bb, batch + (3, 3)), dtype=float).reshape(-1, 3, 3)
+    R_out = np.empty_like(Ca)
+    q_out = np.empty_like(q)
+    _rk.procrustes_step(q, Ca, Cb, n_outer, n_square, R_out, q_out)
+    return R_out.reshape(batch + (D, 3)), q_out.reshape(batch + (4,))
 
 
 #: A stick whose smallest principal spread is below this fraction of its largest is "flat":
@@ -301,6 +266,29 @@ def _plane_normal(C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     n = np.take_along_axis(cands, k[..., None, None], axis=-2)[..., 0, :]
     n = n / np.maximum(np.take_along_axis(norms, k[..., None], axis=-1), 1e-300)
     return n, lam_min / np.maximum(lam_max, 1e-300)
+
+
+def _polar_rows(C: np.ndarray) -> np.ndarray:
+    """The paper's rotation update: the orthonormal-row polar factor ``U V^T`` of C (..., D, 3).
+
+    For D = 3 made proper (det +1). For D = 2 in closed form, ``(C C^T)^(-1/2) C``
+    (compiled; a batched LAPACK SVD costs about 5 us per matrix); where C is
+    near rank 1 the factor is not unique and the SVD picks one.
+    """
+    if C.shape[-2] == 2:
+        flat = np.ascontiguousarray(C, dtype=float).reshape(-1, 2, 3)
+        out = np.empty_like(flat)
+        ok = np.empty(flat.shape[0], dtype=np.bool_)
+        _rk.polar_rows2(flat, out, ok)
+        if not ok.all():
+            U, _, Vt = np.linalg.svd(flat[~ok], full_matrices=False)
+            out[~ok] = U @ Vt
+        return out.reshape(C.shape)
+    U, _, Vt = np.linalg.svd(C, full_matrices=False)
+    polar = U @ Vt
+    if C.shape[-2] == 3:
+        polar = polar * np.sign(np.linalg.det(polar))[..., None, None]
+    return polar
 
 
 def best_rotations(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, axes: np.ndarray | None = None,
@@ -336,11 +324,7 @@ def best_rotations(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, axes: np.n
             best, best_e = newton_step(best, C_ab, C_bb, best_e, return_energy=True)
     candidates: list[tuple[np.ndarray | None, np.ndarray]] = []
     if use_polar:
-        U, _, Vt = np.linalg.svd(C_ab, full_matrices=False)
-        polar = U @ Vt
-        if D == 3:
-            polar = polar * np.sign(np.linalg.det(polar))[..., None, None]
-        candidates.append((None, polar))
+        candidates.append((None, _polar_rows(C_ab)))
     if flat is not None and axes is not None and np.any(flat):
         mask = np.broadcast_to(np.reshape(flat, flat.shape + (1,) * (len(batch) - flat.ndim)), batch)
         ax = np.broadcast_to(axes, batch + (3, 3))[mask]
@@ -532,13 +516,8 @@ def update_local(st: StickState, obs: Observations, priors: Priors) -> None:
 
     (The paper's form divided by tau_w, with missing frames dropped from both sums.)
     """
-    S, F, D = st.trans.shape
-    des = st.design(obs)
-    RtR = (np.swapaxes(st.rot, -1, -2) @ st.rot).reshape(S * F, 9)
-    H = st.tau_w * np.asarray(des.vis_T @ RtR).reshape(-1, 3, 3) + priors.tau_p * np.eye(3)
-    Rt_t = (st.trans[..., None, :] @ st.rot).reshape(S * F, 3)
-    rhs = st.tau_w * (des.obs_w_T @ st.rot.reshape(S * F * D, 3) - des.vis_T @ Rt_t)
-    st.local = np.linalg.solve(H, rhs[..., None])[..., 0]
+    H, rhs = st.design(obs).local_normal_equations(st.rot, st.trans)
+    st.local = np.linalg.solve(st.tau_w * H + priors.tau_p * np.eye(3), st.tau_w * rhs[..., None])[..., 0]
 
 
 def update_ends(st: StickState, priors: Priors) -> None:

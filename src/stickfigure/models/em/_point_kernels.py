@@ -1,0 +1,94 @@
+"""Compiled sums over the observed (point, frame) entries, per stick and frame.
+
+Every EM sweep needs, for each (stick, frame), sums over that stick's visible
+points: of ``l``, ``l l^T`` and ``w l^T`` (the Procrustes statistics), of the
+squared residuals ``|w - R l - t|^2`` (tau_w and the objective), and per point
+the normal equations of its local coordinates. These loops make one pass over
+the P x F entries each, where the sparse-incidence products they replace
+(scipy.sparse, one product per statistic) made several, plus their reshapes;
+the residual is summed directly instead of expanded into moments, so it has no
+cancellation. See :class:`.model.Design`.
+
+Inputs: ``labels`` (P,) int64 stick of each point, ``mask`` (P, F) float64 (an
+entry counts where > 0), ``w`` (P, F, D), ``local`` (P, 3), ``rot`` (S, F, D, 3),
+``trans`` (S, F, D), all C-contiguous; outputs are zeroed here and written in place.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+_JIT = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy"}
+_L = nb.types.Array(nb.int64, 1, "C", readonly=True)
+_I2 = nb.types.Array(nb.float64, 2, "C", readonly=True)
+_I3 = nb.types.Array(nb.float64, 3, "C", readonly=True)
+_I4 = nb.types.Array(nb.float64, 4, "C", readonly=True)
+
+
+@nb.njit(nb.void(_L, _I2, _I3, _I2, nb.float64[:, :, ::1], nb.float64[:, :, :, ::1], nb.float64[:, :, :, ::1]),
+         **_JIT)
+def point_moments(labels: np.ndarray, mask: np.ndarray, w: np.ndarray, local: np.ndarray,
+                  s_l: np.ndarray, s_ll: np.ndarray, s_wl: np.ndarray) -> None:
+    """s_l (S, F, 3), s_ll (S, F, 3, 3), s_wl (S, F, D, 3): sums of l, l l^T, w l^T over visible points."""
+    P, F, D = w.shape
+    s_l[:] = 0.0
+    s_ll[:] = 0.0
+    s_wl[:] = 0.0
+    for p in range(P):
+        s = labels[p]
+        l0, l1, l2 = local[p, 0], local[p, 1], local[p, 2]
+        for f in range(F):
+            if mask[p, f] > 0:
+                s_l[s, f, 0] += l0
+                s_l[s, f, 1] += l1
+                s_l[s, f, 2] += l2
+                for j in range(3):
+                    lj = local[p, j]
+                    s_ll[s, f, j, 0] += lj * l0
+                    s_ll[s, f, j, 1] += lj * l1
+                    s_ll[s, f, j, 2] += lj * l2
+                for d in range(D):
+                    wd = w[p, f, d]
+                    s_wl[s, f, d, 0] += wd * l0
+                    s_wl[s, f, d, 1] += wd * l1
+                    s_wl[s, f, d, 2] += wd * l2
+
+
+@nb.njit(nb.void(_L, _I2, _I3, _I4, _I3, _I2, nb.float64[::1]), **_JIT)
+def residual_sq(labels: np.ndarray, mask: np.ndarray, w: np.ndarray, rot: np.ndarray, trans: np.ndarray,
+                local: np.ndarray, out: np.ndarray) -> None:
+    """out (S,): sum over the visible entries of each stick of |w - R l - t|^2."""
+    P, F, D = w.shape
+    out[:] = 0.0
+    for p in range(P):
+        s = labels[p]
+        l0, l1, l2 = local[p, 0], local[p, 1], local[p, 2]
+        acc = 0.0
+        for f in range(F):
+            if mask[p, f] > 0:
+                for d in range(D):
+                    r = w[p, f, d] - rot[s, f, d, 0] * l0 - rot[s, f, d, 1] * l1 - rot[s, f, d, 2] * l2 \
+                        - trans[s, f, d]
+                    acc += r * r
+        out[s] += acc
+
+
+@nb.njit(nb.void(_L, _I2, _I3, _I4, _I3, nb.float64[:, :, ::1], nb.float64[:, ::1]), **_JIT)
+def local_normal_equations(labels: np.ndarray, mask: np.ndarray, w: np.ndarray, rot: np.ndarray,
+                           trans: np.ndarray, H: np.ndarray, b: np.ndarray) -> None:
+    """H (P, 3, 3) = sum_f o R^T R and b (P, 3) = sum_f o R^T (w - t), R, t of the point's stick."""
+    P, F, D = w.shape
+    H[:] = 0.0
+    b[:] = 0.0
+    for p in range(P):
+        s = labels[p]
+        for f in range(F):
+            if mask[p, f] > 0:
+                for d in range(D):
+                    r = w[p, f, d] - trans[s, f, d]
+                    for j in range(3):
+                        rj = rot[s, f, d, j]
+                        b[p, j] += rj * r
+                        for k in range(3):
+                            H[p, j, k] += rj * rot[s, f, d, k]
