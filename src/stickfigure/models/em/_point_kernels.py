@@ -21,6 +21,7 @@ import numpy as np
 
 _JIT = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy"}
 _L = nb.types.Array(nb.int64, 1, "C", readonly=True)
+_I1 = nb.types.Array(nb.float64, 1, "C", readonly=True)
 _I2 = nb.types.Array(nb.float64, 2, "C", readonly=True)
 _I3 = nb.types.Array(nb.float64, 3, "C", readonly=True)
 _I4 = nb.types.Array(nb.float64, 4, "C", readonly=True)
@@ -92,3 +93,38 @@ def local_normal_equations(labels: np.ndarray, mask: np.ndarray, w: np.ndarray, 
                         b[p, j] += rj * r
                         for k in range(3):
                             H[p, j, k] += rj * rot[s, f, d, k]
+
+
+@nb.njit(nb.void(nb.float64, _I3, _I2, _I3, _I4, _I4, _I1, _I3, _I2, _I4, _I3,
+                 nb.float64[:, :, ::1], nb.float64[:, :, ::1], nb.float64[:, :, :, ::1], nb.float64[:, :, :, ::1]),
+         **_JIT)
+def procrustes_moments(tw: float, s_w: np.ndarray, n: np.ndarray, s_l: np.ndarray, s_ll: np.ndarray,
+                       s_wl: np.ndarray, w_end: np.ndarray, t_end: np.ndarray, k_end: np.ndarray,
+                       c_end: np.ndarray, kk_end: np.ndarray, a_bar: np.ndarray, b_bar: np.ndarray,
+                       C_ab: np.ndarray, C_bb: np.ndarray) -> None:
+    """Weighted centroids and centred moments of every (stick, frame) Procrustes problem.
+
+    The points (weight tw; sums s_w, n, s_l, s_ll, s_wl per (stick, frame)) and the
+    endpoints (per stick: total weight w_end (S,), weighted target sum t_end (S, F, D),
+    source sum k_end (S, 3), cross moment c_end (S, F, D, 3), second moment kk_end
+    (S, 3, 3)) pooled: W = tw n + w_end, a_bar = (tw s_w + t_end) / W,
+    b_bar = (tw s_l + k_end) / W, C_ab = tw s_wl + c_end - W a_bar b_bar^T,
+    C_bb = tw s_ll + kk_end - W b_bar b_bar^T (symmetrised).
+    """
+    S, F, D = s_w.shape
+    for s in range(S):
+        for f in range(F):
+            W = tw * n[s, f] + w_end[s]
+            for j in range(3):
+                b_bar[s, f, j] = (tw * s_l[s, f, j] + k_end[s, j]) / W
+            for d in range(D):
+                a = (tw * s_w[s, f, d] + t_end[s, f, d]) / W
+                a_bar[s, f, d] = a
+                for j in range(3):
+                    C_ab[s, f, d, j] = tw * s_wl[s, f, d, j] + c_end[s, f, d, j] - W * a * b_bar[s, f, j]
+            for j in range(3):
+                for k in range(j, 3):
+                    v = 0.5 * (tw * (s_ll[s, f, j, k] + s_ll[s, f, k, j]) + kk_end[s, j, k] + kk_end[s, k, j]) \
+                        - W * b_bar[s, f, j] * b_bar[s, f, k]
+                    C_bb[s, f, j, k] = v
+                    C_bb[s, f, k, j] = v

@@ -43,6 +43,7 @@ from ... import _rotation_kernels as _rk
 from ...geometry import min_eig_sym3 as _min_eig_sym3
 from ...geometry import rotation_energy as _rotation_energy
 from ...geometry import rotation_newton_step as newton_step
+from . import _point_kernels as _pk
 from .model import Observations, Priors, StickState, chain_degree
 
 __all__ = ["update_endpoints", "update_vertices", "update_phi", "update_motions", "update_local",
@@ -168,18 +169,18 @@ def _motion_statistics(st: StickState, obs: Observations, collapse: bool = False
         a = (st.alpha / st.beta)[st.vertex_of]
         wm = (st.tau_m * a / (st.tau_m + a)).reshape(S, E)  # the two springs in series
         tgt = st.mu_v[st.vertex_of].reshape(S, E, F, D)
-        w_sum = wm.sum(axis=1)[:, None]
+        w_sum = wm.sum(axis=1)
         t_sum = np.einsum("se,sefd->sfd", wm, tgt)
         k_sum = (wm[..., None] * ends).sum(axis=1)
         wt = (wm[:, :, None, None] * tgt).transpose(0, 2, 3, 1).reshape(S, F * D, E)
         e_cross = np.matmul(wt, ends).reshape(S, F, D, 3)
         kk = np.einsum("se,sej,sek->sjk", wm, ends, ends)
-    W0 = tw * n + w_sum  # (S, F)
-    a_bar = (tw * s_w + t_sum) / W0[..., None]
-    b_bar = (tw * s_l + k_sum[:, None, :]) / W0[..., None]
-    C_ab = tw * s_wl + e_cross - W0[..., None, None] * (a_bar[..., :, None] * b_bar[..., None, :])
-    C_bb = tw * s_ll + kk[:, None] - W0[..., None, None] * (b_bar[..., :, None] * b_bar[..., None, :])
-    C_bb = 0.5 * (C_bb + np.swapaxes(C_bb, -1, -2))
+    a_bar, b_bar = np.empty((S, F, D)), np.empty((S, F, 3))
+    C_ab, C_bb = np.empty((S, F, D, 3)), np.empty((S, F, 3, 3))
+    c = np.ascontiguousarray
+    _pk.procrustes_moments(float(tw), s_w, n, s_l, s_ll, s_wl, c(np.broadcast_to(w_sum, (S,)), dtype=float),
+                           c(t_sum, dtype=float), c(k_sum, dtype=float), c(e_cross, dtype=float), c(kk, dtype=float),
+                           a_bar, b_bar, C_ab, C_bb)
     if kappa is not None and F > 1:
         nb = np.zeros_like(st.rot)
         nb[:, 1:] += st.rot[:, :-1]
