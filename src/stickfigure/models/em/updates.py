@@ -154,7 +154,7 @@ def _motion_statistics(st: StickState, obs: Observations, collapse: bool = False
     tw = st.tau_w
     E = st.ends_per_stick
     ends = st.ends.reshape(S, E, 3)
-    # Per stick: the endpoints' total weight (S, 1), weighted target sum (S, F, D), weighted
+    # Per stick: the endpoints' total weight (S,) or scalar, weighted target sum (S, F, D), weighted
     # source sum (S, 3), cross moment (S, F, D, 3) and second moment (S, 3, 3).
     if not collapse:  # the paper's M-step
         tm = st.tau_m
