@@ -627,9 +627,13 @@ def fit_motions(
 # The energy of a rotation with orthonormal rows against weighted, centred sources, and Newton
 # steps on it (closed-form 3x3 arithmetic, batched): shared by the projection Procrustes below
 # and the EM's motion update (models/em/updates.py).
-def _flat_batch(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray
-                ) -> tuple[tuple[int, ...], np.ndarray, np.ndarray, np.ndarray]:
-    """The batch shape and C-contiguous float64 (N, D, 3), (N, D, 3), (N, 3, 3) copies for the compiled loops."""
+def flat_rotation_batch(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray
+                        ) -> tuple[tuple[int, ...], np.ndarray, np.ndarray, np.ndarray]:
+    """The batch shape and C-contiguous float64 (N, D, 3), (N, D, 3), (N, 3, 3) arrays for the compiled loops.
+
+    R, C_ab (..., D, 3) and C_bb (..., 3, 3) broadcast over their batch axes (copies only
+    where they must). Used by the rotation functions here and by the EM's Procrustes step.
+    """
     D = R.shape[-2]
     if R.shape[-1] != 3 or C_ab.shape[-2:] != (D, 3) or C_bb.shape[-2:] != (3, 3):
         raise ValueError(f"R, C_ab and C_bb must have shapes (..., D, 3), (..., D, 3) and (..., 3, 3), "
@@ -647,7 +651,7 @@ def rotation_energy(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray) -> np.nda
 
     R, C_ab (..., D, 3) and C_bb (..., 3, 3) broadcast over their batch axes; returns (...).
     """
-    batch, R, C_ab, C_bb = _flat_batch(R, C_ab, C_bb)
+    batch, R, C_ab, C_bb = flat_rotation_batch(R, C_ab, C_bb)
     out = np.empty(R.shape[0])
     _rk.rotation_energy(R, C_ab, C_bb, out)
     return out.reshape(batch)
@@ -724,7 +728,7 @@ def rotation_newton_step(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, ener
     time in a compiled loop (:mod:`stickfigure._rotation_kernels`; the same closed
     forms as :func:`rotation_newton_model`, which the tests compare it with).
     """
-    batch, Rf, Ca, Cb = _flat_batch(R, C_ab, C_bb)
+    batch, Rf, Ca, Cb = flat_rotation_batch(R, C_ab, C_bb)
     e_old = rotation_energy(Rf, Ca, Cb) if energy is None else \
         np.ascontiguousarray(np.broadcast_to(energy, batch), dtype=float).reshape(-1)
     R_out = np.empty_like(Rf)

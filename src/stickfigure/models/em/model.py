@@ -196,7 +196,6 @@ class Design:
     n: np.ndarray = field(repr=False)
     s_w: np.ndarray = field(repr=False)
     s_ww: np.ndarray = field(repr=False)
-    _args: tuple = field(repr=False, default=())
 
     @staticmethod
     def of(labels: np.ndarray, n_sticks: int, obs: Observations) -> "Design":
@@ -209,8 +208,13 @@ class Design:
         s_w = np.asarray(onehot @ (obs.w * vis[..., None]).reshape(P, F * D)).reshape(S, F, D)
         ww = np.sum(obs.w * obs.w * vis[..., None], axis=(1, 2))
         s_ww = np.bincount(labels, weights=ww, minlength=S)
-        args = (labels, np.ascontiguousarray(obs.mask, dtype=float), np.ascontiguousarray(obs.w, dtype=float))
-        return Design(labels=labels, n_sticks=S, obs=obs, onehot=onehot, n=n, s_w=s_w, s_ww=s_ww, _args=args)
+        return Design(labels=labels, n_sticks=S, obs=obs, onehot=onehot, n=n, s_w=s_w, s_ww=s_ww)
+
+    @property
+    def _args(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """labels, mask and w as the compiled loops take them (no copy where they already are)."""
+        c = np.ascontiguousarray
+        return self.labels, c(self.obs.mask, dtype=float), c(self.obs.w, dtype=float)
 
     def stick_sum(self, x: np.ndarray) -> np.ndarray:
         """Sum ``x`` (P, ...) over the points of each stick -> (S, ...)."""

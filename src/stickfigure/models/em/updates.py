@@ -40,6 +40,7 @@ from scipy.linalg import solveh_banded
 from scipy.spatial.transform import Rotation
 
 from ... import _rotation_kernels as _rk
+from ...geometry import flat_rotation_batch
 from ...geometry import min_eig_sym3 as _min_eig_sym3
 from ...geometry import rotation_energy as _rotation_energy
 from ...geometry import rotation_newton_step as newton_step
@@ -235,11 +236,9 @@ def procrustes_step(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, *, n_oute
     (:mod:`stickfigure._rotation_kernels`).
     """
     D = R.shape[-2]
-    batch = np.broadcast_shapes(R.shape[:-2], C_ab.shape[:-2], C_bb.shape[:-2])
-    q = rot_to_quat(complete_rotation(R)) if quat is None else quat
+    batch, Rf, Ca, Cb = flat_rotation_batch(R, C_ab, C_bb)
+    q = rot_to_quat(complete_rotation(Rf)) if quat is None else quat
     q = np.ascontiguousarray(np.broadcast_to(q, batch + (4,)), dtype=float).reshape(-1, 4)
-    Ca = np.ascontiguousarray(np.broadcast_to(C_ab, batch + (D, 3)), dtype=float).reshape(-1, D, 3)
-    Cb = np.ascontiguousarray(np.broadcast_to(C_bb, batch + (3, 3)), dtype=float).reshape(-1, 3, 3)
     R_out = np.empty_like(Ca)
     q_out = np.empty_like(q)
     _rk.procrustes_step(q, Ca, Cb, n_outer, n_square, R_out, q_out)
