@@ -77,10 +77,12 @@ class Observations:
         return int(self.w.shape[2])
 
     def take(self, points: np.ndarray) -> "Observations":
-        return Observations(self.w[points], self.mask[points])
+        return Observations(np.ascontiguousarray(self.w[points]), np.ascontiguousarray(self.mask[points]))
 
     def take_frames(self, frames: np.ndarray) -> "Observations":
-        return Observations(self.w[:, frames], self.mask[:, frames])
+        # Indexing the middle axis with an array leaves a strided result; the compiled loops
+        # take C-ordered arrays and would otherwise copy it on every call.
+        return Observations(np.ascontiguousarray(self.w[:, frames]), np.ascontiguousarray(self.mask[:, frames]))
 
 
 def normalise(xy: np.ndarray) -> tuple[Observations, np.ndarray, float]:

@@ -357,7 +357,7 @@ def articulated_split_candidates(st: StickState, obs: Observations, priors: Prio
 def _frames(st: StickState, frames: np.ndarray) -> StickState:
     """The state restricted to some frames (motions and endpoint/vertex posteriors)."""
     out = st.copy()
-    out.rot, out.trans = st.rot[:, frames], st.trans[:, frames]
+    out.rot, out.trans = np.ascontiguousarray(st.rot[:, frames]), np.ascontiguousarray(st.trans[:, frames])
     out.mu_e, out.mu_v, out.tau_v = st.mu_e[:, frames], st.mu_v[:, frames], st.tau_v[:, frames]
     out.ghosts = None
     return out
