@@ -280,6 +280,21 @@ def test_quaternions_round_trip():
     np.testing.assert_allclose(U.quat_to_rot(q), R, atol=1e-12)
 
 
+def test_vertex_sums_add_in_the_order_of_np_add_at():
+    # updates._vertex_sums sums endpoint means per vertex in a compiled loop; the same additions
+    # in the same order as np.add.at, so the same bits (the EM's results do not move).
+    from stickfigure.models.em import _point_kernels as PK
+
+    rng = np.random.default_rng(5)
+    index = rng.integers(0, 7, size=40)
+    x = rng.normal(size=(40, 9)) * 10.0 ** rng.integers(-8, 8, size=(40, 1))
+    want = np.zeros((8, 9))
+    np.add.at(want, index, x)
+    got = np.full((8, 9), np.nan)
+    PK.row_sums(index.astype(np.int64), x, got)
+    np.testing.assert_array_equal(got, want)
+
+
 def _horn(C):
     """Horn's 4x4 matrix N with q^T N q = tr(R(q)^T C) (reference for the compiled loop)."""
     c = C

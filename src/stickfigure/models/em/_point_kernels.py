@@ -128,3 +128,18 @@ def procrustes_moments(tw: float, s_w: np.ndarray, n: np.ndarray, s_l: np.ndarra
                         - W * b_bar[s, f, j] * b_bar[s, f, k]
                     C_bb[s, f, j, k] = v
                     C_bb[s, f, k, j] = v
+
+
+@nb.njit(nb.void(_L, _I2, nb.float64[:, ::1]), **_JIT)
+def row_sums(index: np.ndarray, x: np.ndarray, out: np.ndarray) -> None:
+    """out (J, K) = the rows of x (E, K) summed by ``index`` (E,), in the order of E.
+
+    ``np.add.at(out, index, x)`` on a zeroed ``out``, with the same order of additions
+    (so the same bits), without its per-element dispatch.
+    """
+    out[:] = 0.0
+    E, K = x.shape
+    for e in range(E):
+        j = index[e]
+        for k in range(K):
+            out[j, k] += x[e, k]

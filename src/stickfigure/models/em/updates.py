@@ -76,8 +76,9 @@ def _vertex_sums(st: StickState) -> tuple[np.ndarray, np.ndarray]:
     """Endpoint count (J,) and sum of endpoint means (J, F, D) per vertex, ghosts included."""
     J, F, D = st.mu_v.shape
     n = st.vertex_counts()
-    s = np.zeros((J, F * D))
-    np.add.at(s, st.vertex_of, st.mu_e.reshape(-1, F * D))
+    s = np.empty((J, F * D))
+    _pk.row_sums(np.ascontiguousarray(st.vertex_of, dtype=np.int64),
+                 np.ascontiguousarray(st.mu_e, dtype=float).reshape(-1, F * D), s)
     s = s.reshape(J, F, D)
     if st.ghosts is not None:
         n = n + st.ghosts.n
