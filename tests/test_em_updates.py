@@ -280,6 +280,16 @@ def test_quaternions_round_trip():
     np.testing.assert_allclose(U.quat_to_rot(q), R, atol=1e-12)
 
 
+def test_frame_and_point_subsets_of_the_observations_are_c_ordered():
+    # The compiled loops take C-ordered arrays and copy anything else on every call; indexing
+    # the frame axis with an index array leaves a strided result unless it is made C-ordered.
+    rng = np.random.default_rng(2)
+    obs, _, _ = normalise(rng.normal(size=(6, 30, 2)))
+    for sub in (obs.take_frames(np.arange(0, 30, 3)), obs.take(np.array([0, 2, 5]))):
+        assert sub.w.flags.c_contiguous and sub.mask.flags.c_contiguous
+    np.testing.assert_array_equal(obs.take_frames(np.array([1, 4])).w, obs.w[:, [1, 4]])
+
+
 def test_vertex_sums_add_in_the_order_of_np_add_at():
     # updates._vertex_sums sums endpoint means per vertex in a compiled loop; the same additions
     # in the same order as np.add.at, so the same bits (the EM's results do not move).

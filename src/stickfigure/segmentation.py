@@ -390,8 +390,8 @@ def _refine(M: _Meas, labels: np.ndarray, *, rank: int, n_iter: int = 20, min_si
         var = np.where(np.isfinite(var) & (var > 0), var, max(fallback, 1e-300))
         if sigma is not None:
             var = np.full(k, max(float(sigma) ** 2, 1e-300))
-        # A cluster whose members fit it to a level near the float floor (noiseless markers on
-        # one rigid plate) costs every other point more than a float holds: inf is that cost.
+        # Against a cluster whose members fit it to a level near the float floor, another
+        # point's cost exceeds what a float holds: inf is that cost.
         with np.errstate(over="ignore"):
             cost = R / (2.0 * var[:, None]) + 0.5 * FD * np.log(var)[:, None]
         cost[sizes == 0] = np.inf

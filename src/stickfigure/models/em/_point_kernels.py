@@ -135,7 +135,8 @@ def row_sums(index: np.ndarray, x: np.ndarray, out: np.ndarray) -> None:
     """out (J, K) = the rows of x (E, K) summed by ``index`` (E,), in the order of E.
 
     ``np.add.at(out, index, x)`` on a zeroed ``out``, with the same order of additions
-    (so the same bits), without its per-element dispatch.
+    (so the same bits), without its per-element dispatch. Every index must lie in [0, J):
+    the loop does not check (a vertex index of the model always does).
     """
     out[:] = 0.0
     E, K = x.shape
