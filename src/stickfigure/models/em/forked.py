@@ -62,10 +62,20 @@ def _on_sigterm(signum: int, frame: Any) -> None:
     raise _Cancelled
 
 
-def _child(conn: Any, reader: Any, job: Callable[[], Any], group: bool) -> None:
+def _child(conn: Any, reader: Any, job: Callable[[], Any], group: bool, gate: tuple | None = None) -> None:
     # The parent's end of the pipe, inherited: closed, so that the pipe breaks when the parent
     # closes it (a write nobody will read then fails instead of waiting, see Speculative._close).
     reader.close()
+    if gate is not None:
+        # Wait until the parent has set this process's group and priority (its end closed or
+        # written): the job must not start at the parent's priority.
+        wait, signal_end = gate
+        signal_end.close()
+        try:
+            wait.recv_bytes()
+        except EOFError:
+            pass
+        wait.close()
     if group:
         try:
             os.setpgid(0, 0)  # (the parent does it too: whichever runs first)
@@ -137,11 +147,12 @@ class Speculative:
         ctx = _fork_context() if parallel else None
         if ctx is not None:
             recv, send = ctx.Pipe(duplex=False)
+            gate = ctx.Pipe(duplex=False) if nice else None
             # Not a daemon: a daemonic process may not have children of its own. It never outlives
             # the ``with`` block that started it (cancel).
-            proc = ctx.Process(target=_child, args=(send, recv, job, bool(nice)), daemon=False)
+            proc = ctx.Process(target=_child, args=(send, recv, job, bool(nice), gate), daemon=False)
             proc.start()
-            if nice:
+            if gate is not None:
                 # Its own process group, so that it and the children it forks can be reniced
                 # together (result); the priority set from here, so that result cannot undo it
                 # before the child has set it.
@@ -153,6 +164,14 @@ class Speculative:
                     os.setpriority(os.PRIO_PROCESS, proc.pid, os.getpriority(os.PRIO_PROCESS, 0) + nice)
                 except OSError:  # already gone
                     pass
+                # The child waits for this before its job (without it, a job that starts at once
+                # ran at this process's priority until the line above; a test saw it do so).
+                gate[0].close()
+                try:
+                    gate[1].send_bytes(b"go")
+                except OSError:  # already gone
+                    pass
+                gate[1].close()
             send.close()
             self._proc, self._conn = proc, recv
         #: Whether the job was forked into a child process (it stays true after the result).
