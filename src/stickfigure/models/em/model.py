@@ -64,6 +64,12 @@ class Observations:
     w: np.ndarray
     mask: np.ndarray
 
+    def __post_init__(self) -> None:
+        # C-ordered float64, as the compiled loops take them (._point_kernels): a strided view
+        # (a subset of frames picked by an index array is one) would be copied on every call.
+        self.w = np.ascontiguousarray(self.w, dtype=float)
+        self.mask = np.ascontiguousarray(self.mask, dtype=float)
+
     @property
     def n_points(self) -> int:
         return int(self.w.shape[0])
@@ -77,12 +83,10 @@ class Observations:
         return int(self.w.shape[2])
 
     def take(self, points: np.ndarray) -> "Observations":
-        return Observations(np.ascontiguousarray(self.w[points]), np.ascontiguousarray(self.mask[points]))
+        return Observations(self.w[points], self.mask[points])
 
     def take_frames(self, frames: np.ndarray) -> "Observations":
-        # Indexing the middle axis with an array leaves a strided result; the compiled loops
-        # take C-ordered arrays and would otherwise copy it on every call.
-        return Observations(np.ascontiguousarray(self.w[:, frames]), np.ascontiguousarray(self.mask[:, frames]))
+        return Observations(self.w[:, frames], self.mask[:, frames])
 
 
 def normalise(xy: np.ndarray) -> tuple[Observations, np.ndarray, float]:
@@ -214,9 +218,8 @@ class Design:
 
     @property
     def _args(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """labels, mask and w as the compiled loops take them (no copy where they already are)."""
-        c = np.ascontiguousarray
-        return self.labels, c(self.obs.mask, dtype=float), c(self.obs.w, dtype=float)
+        """labels, mask and w as the compiled loops take them (Observations keeps them C-ordered)."""
+        return self.labels, self.obs.mask, self.obs.w
 
     def stick_sum(self, x: np.ndarray) -> np.ndarray:
         """Sum ``x`` (P, ...) over the points of each stick -> (S, ...)."""
