@@ -491,7 +491,7 @@ def test_cross_body_two_point_stick_is_dissolved_by_prediction():
     labels = T.copy()
     labels[far] = T.max() + 1
     settings = EMSettings(n_iter=100, resample_every=0, refine_sticks=False, dissolve_points=0, resplit=False,
-                          holdout=None)
+                          holdout=None, bridge_points=0)
     stages, sel, _, _ = fit_stages(traj, settings, Priors(), np.random.default_rng(0), labels=labels)
     st = stages[sel].state
     assert st.n_sticks == 5
@@ -573,7 +573,7 @@ def test_heldout_check_leaves_rigid_three_point_sticks_to_the_likelihood(monkeyp
 
     traj = sf.synthetic.random_figure(n_sticks=4, frames=90, noise=0.01, seed=3, points_per_stick=3)
     settings = EMSettings(n_iter=60, resample_every=0, refine_sticks=False, dissolve_points=0, resplit=False,
-                          holdout=None)
+                          holdout=None, bridge_points=0)
     stages, sel, _, _ = fit_stages(traj, settings, Priors(), np.random.default_rng(0), labels=traj.labels_true)
     st = stages[sel].state
     obs, _, _ = normalise(traj.xy)
@@ -973,7 +973,7 @@ def test_a_stick_that_took_a_dissolved_segment_is_split_before_the_resumed_searc
 
     monkeypatch.setattr(refine, "heldout_dissolve", absorb)
     sk = sf.fit(traj, method="em", random_state=0, labels=truth, n_iter=80, refine_sticks=False, resplit=False,
-                resample_every=0, reattach=False, split_dissolved=split_dissolved)
+                resample_every=0, reattach=False, split_dissolved=split_dissolved, bridge_points=0)
     cut = [s for s in sk.info["stages"] if s["heldout"] is not None]
     assert len(cut) == 1
     if split_dissolved:

@@ -185,6 +185,15 @@ class EMSkeleton(StickEstimator):
         motion-capture rows instead of 11. Not judged by the held-out check's
         prediction, which rejected every split that gave a body tree (docs/em.md
         section 11). 0: off.
+    bridge_points : int
+        Then, up to this many *bridges*: a point whose removal lets the rest of its
+        stick fit far better (excess above half the BIC charge of a new stick) is
+        made a stick of its own, inserted at one of the two joints nearest to it
+        between the sticks that joint held, and kept when the selection criterion
+        improves after EM. A segment with one marker off its joints (CMU's thigh
+        marker, the knee marker going with the shin) otherwise bends whatever
+        stick it lands on, as a free 1-point stick cannot survive
+        (:mod:`.bridge`, docs/em.md section 6). 0: off.
     reattach : bool
         Finally, sub-tree moves: a joint is cut where a part of the tree has a
         clearly better least-squares joint with a stick on the other side (residual
@@ -265,7 +274,7 @@ class EMSkeleton(StickEstimator):
                  holdout: float | None = 0.15, holdout_masks: int = 1, holdout_points: int = 2,
                  dissolve_scope: str = "all",
                  remerge: bool = True, split_dissolved: int = 4,
-                 reattach: bool = True, max_trees: int | str | None = "auto",
+                 bridge_points: int = 2, reattach: bool = True, max_trees: int | str | None = "auto",
                  max_frames: int | None = 400, oversegment: float | None = 3.5, n_jobs: int | None = None,
                  tau_p: float = 25.0,
                  alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e6, impute_iter: int = 100,
@@ -300,6 +309,7 @@ class EMSkeleton(StickEstimator):
         self.dissolve_scope = dissolve_scope
         self.remerge = remerge
         self.split_dissolved = split_dissolved
+        self.bridge_points = bridge_points
         self.reattach = reattach
         self.max_trees = max_trees
         self.max_frames = max_frames
@@ -332,6 +342,7 @@ class EMSkeleton(StickEstimator):
             raise ValueError(f"split_axes must be 1, 2 or 3 (principal axes of a 3D shape), got {self.split_axes!r}")
         check_positive(self.dissolve_points, "dissolve_points", integer=True, allow_zero=True)
         check_positive(self.split_dissolved, "split_dissolved", integer=True, allow_zero=True)
+        check_positive(self.bridge_points, "bridge_points", integer=True, allow_zero=True)
         check_positive(self.tol, "tol", allow_zero=True)
         for name in ("tau_p", "alpha0", "beta0", "max_precision"):
             check_positive(getattr(self, name), name)
@@ -373,7 +384,7 @@ class EMSkeleton(StickEstimator):
                               holdout_masks=int(self.holdout_masks), holdout_points=int(self.holdout_points),
                               dissolve_scope=str(self.dissolve_scope),
                               remerge=bool(self.remerge), split_dissolved=int(self.split_dissolved),
-                              reattach=bool(self.reattach),
+                              bridge_points=int(self.bridge_points), reattach=bool(self.reattach),
                               max_trees=None if self.max_trees in (None, "auto") else int(self.max_trees),
                               endpoint_init=self.endpoint_init, n_ends=int(self.n_ends))
         priors = Priors(tau_p=float(self.tau_p), alpha0=float(self.alpha0), beta0=float(self.beta0),
@@ -661,6 +672,7 @@ def _skeleton(stages: list[Stage], selected: int, norm: tuple[np.ndarray, float]
             "dissolved": s.dissolved, "moved": s.moved, "heldout": s.heldout, "split": s.split,
             "reattached": s.reattached,
             "joined": s.joined,
+            "bridged": s.bridged,
             "ends_xy": (s.ends_xy * scale + centre).tolist(), "joints_xy": (s.joints_xy * scale + centre).tolist(),
         } for s in stages],
         "objective_stage": int(np.argmax([s.objective for s in stages])),

@@ -108,6 +108,7 @@ class EMSettings:
     dissolve_scope: str = "all"
     remerge: bool = True
     split_dissolved: int = 4
+    bridge_points: int = 2
     reattach: bool = True
     max_trees: int | None = None
     # Processes the search may use (forked.py); the result does not depend on it.
@@ -373,6 +374,8 @@ def merge_candidates(st: StickState, settings: EMSettings, seen: np.ndarray | No
         return ("vertex",) + tuple(np.flatnonzero(st.vertex_of == side[1]).tolist())
 
     stats = pair_stats(st)
+    size = np.bincount(st.labels, minlength=st.n_sticks)
+    joints = st.joints_per_stick()
     out: list[Candidate] = []
     for ia, a in enumerate(sides):
         for b in sides[ia + 1:]:
@@ -399,6 +402,12 @@ def merge_candidates(st: StickState, settings: EMSettings, seen: np.ndarray | No
             resolved = np.asarray(resolved)
             vs = sorted({int(st.vertex_of[e]) for e in resolved})
             if len(vs) != 2:
+                continue
+            # A stick of one point turns freely about it in every frame, so its endpoints constrain
+            # each other by their distance alone: a third joint on it would be a free hub (tying
+            # parts by nothing), which the criterion likes wherever a rigid joint fits badly.
+            gains = resolved[alone[st.vertex_of[resolved]]] // E
+            if np.any((size[gains] == 1) & (joints[gains] >= 2)):
                 continue
             out.append(Candidate(j1=vs[0], j2=vs[1], residual=res, ends=resolved,
                                  k=k if settings.merge_init == "joint" else None,
@@ -847,6 +856,7 @@ class Stage:
     search_bic: float | None = None  # the search's best BIC, before the held-out check (compares starts)
     reattached: list = field(default_factory=list)  # sub-tree moves kept (tree.reattach_subtrees)
     joined: list = field(default_factory=list)  # stick pairs joined to reach max_trees (tree.join_trees)
+    bridged: list = field(default_factory=list)  # points made sticks between two sticks (bridge.bridge_points)
 
 
 def _stage(st: StickState, obs: Observations, value: float, merged: tuple[int, int] | None, sweeps: int,
@@ -1050,6 +1060,19 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
         if joined:  # none when the forest has max_trees trees or fewer
             stages.append(_stage(cur, obs, val, None, n, ref))
             stages[-1].joined = joined
+            best[selection] = (getattr(stages[-1], selection), len(stages) - 1, cur.copy())
+    if settings.bridge_points:
+        # A point that bends its stick (a thigh marker on the thorax) as a stick of its own between
+        # two jointed sticks (bridge.py); before the sub-tree moves, which can re-place its joints.
+        from .bridge import bridge_points
+
+        _, at, cur = best[selection]
+        cur, val, n, bridged = bridge_points(cur.copy(), obs, priors, settings, rng, stages[at].objective,
+                                             lambda s, v: bic(s, obs, v) if selection == "bic" else v,
+                                             settings.bridge_points)
+        if bridged:
+            stages.append(_stage(cur, obs, val, None, n, ref))
+            stages[-1].bridged = bridged
             best[selection] = (getattr(stages[-1], selection), len(stages) - 1, cur.copy())
     if settings.reattach:
         # Sub-tree moves (tree.py): the greedy search never undoes a merge, and a contracted
