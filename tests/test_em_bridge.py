@@ -113,3 +113,18 @@ def test_a_bridge_stage_is_named_in_the_pictures():
     from stickfigure.plot.em import stage_kind
 
     assert stage_kind({"merged": None, "bridged": [{"point": 3, "detached": 0, "linked": [1, 4]}]}, 5) == "bridges"
+
+
+def test_bridge_points_gives_the_same_model_in_one_process_or_two(star):
+    # Half of a candidate's trials run in a forked child with n_jobs > 1; each trial draws from
+    # its own generator, so the kept bridge and its fit are the same bits.
+    traj, st, wrong, value, p, obs, settings, priors = star
+
+    def crit(s, v):
+        return bic(s, obs, v)
+
+    one = bridge_points(wrong, obs, priors, replace(settings, n_jobs=1), np.random.default_rng(4), value, crit, 2)
+    two = bridge_points(wrong, obs, priors, replace(settings, n_jobs=2), np.random.default_rng(4), value, crit, 2)
+    assert one[1] == two[1] and one[2] == two[2] and one[3] == two[3]
+    np.testing.assert_array_equal(one[0].labels, two[0].labels)
+    np.testing.assert_array_equal(one[0].rot, two[0].rot)
