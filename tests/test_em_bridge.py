@@ -128,3 +128,20 @@ def test_bridge_points_gives_the_same_model_in_one_process_or_two(star):
     assert one[1] == two[1] and one[2] == two[2] and one[3] == two[3]
     np.testing.assert_array_equal(one[0].labels, two[0].labels)
     np.testing.assert_array_equal(one[0].rot, two[0].rot)
+
+
+@pytest.mark.parametrize("n_ends", [2, 5])
+def test_insert_bridge_with_any_number_of_endpoints(n_ends):
+    # n_ends has no upper bound: the new stick gets one endpoint in the joint and n_ends - 1 free.
+    traj = sf.synthetic.random_figure(n_sticks=3, frames=40, noise=0.01, seed=7)
+    obs, _, _ = normalise(traj.xy)
+    settings = EMSettings(n_iter=40, resample_every=0, n_ends=n_ends, bridge_points=0)
+    stages, sel, _, _ = fit_stages(traj, settings, Priors(), np.random.default_rng(0), labels=traj.labels_true,
+                                   n_ends=n_ends)
+    st = stages[sel].state
+    j = int(np.flatnonzero(st.vertex_counts() >= 2)[0])
+    e = int(np.flatnonzero(st.vertex_of == j)[0])
+    p = int(np.flatnonzero(st.labels != e // n_ends)[0])
+    new, _, _, record = insert_bridge(st, obs, Priors(), settings, p, e, np.random.default_rng(1))
+    assert new.ends.shape == ((st.n_sticks + 1) * n_ends, 3) and record["point"] == p
+    assert new.joints_per_stick()[-1] == 2

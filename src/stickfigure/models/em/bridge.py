@@ -154,12 +154,12 @@ def _nearest_joints(st: StickState, obs: Observations, p: int, n: int) -> np.nda
 def insert_bridge(st: StickState, obs: Observations, priors: Priors, settings, p: int, e: int,
                   rng: np.random.Generator, stop: Callable | None = None
                   ) -> tuple[StickState, float, int, dict] | None:
-    """Point ``p`` as a new stick between endpoint ``e``'s stick and the part it was jointed to.
+    """Point ``p`` as a new stick in endpoint ``e``'s joint, between ``e``'s stick and the others on it.
 
     Step 2 of the module docstring. Returns the state after EM, its objective, the
     sweeps run and a record ``{"point", "detached", "linked"}`` (stick numbers of
     the new state; the new stick is the last), or None when no merge links the new
-    stick to the cut-off part.
+    stick to the joint's other sticks.
     """
     from .assign import candidate_fits
     from .structure import (
@@ -187,8 +187,10 @@ def insert_bridge(st: StickState, obs: Observations, priors: Priors, settings, p
     out.trans = np.concatenate([cut.trans, cut.trans[b:b + 1]])
     k0 = cut.ends[e]
     # One endpoint where b was jointed, the others beyond p from it (free, to be joined).
-    far = [2.0 * lp - k0, 1.5 * lp - 0.5 * k0, lp + np.array([0.0, 0.0, 0.1])]
-    out.ends = np.concatenate([cut.ends, np.stack([k0] + far[:E - 1])])
+    # (Any number of endpoints: n_ends has no upper bound.)
+    far = [lp + (lp - k0) / (i + 1) for i in range(min(E - 1, 2))]
+    far += [lp + np.array([0.0, 0.0, 0.1 * i]) for i in range(1, E - 2)]
+    out.ends = np.concatenate([cut.ends, np.stack([k0] + far)])
     out.vertex_of = np.concatenate([cut.vertex_of, [ve], J + np.arange(E - 1)])
     out.mu_v = np.concatenate([cut.mu_v, np.zeros((E - 1, F, D))])
     out.tau_v = np.concatenate([cut.tau_v, np.ones((E - 1, F))])
