@@ -59,7 +59,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .model import Ghosts, Observations, Priors, StickState, chain_degree
+from .model import Ghosts, Observations, Priors, StickState
 from .updates import em_sweep, update_endpoints
 
 __all__ = ["bridge_points", "bridge_threshold", "insert_bridge", "lever_points"]
@@ -102,8 +102,7 @@ def lever_points(st: StickState, obs: Observations, priors: Priors, *, min_point
     stick_rss = sub.design(sobs).residual_sq(sub.rot, sub.trans, sub.local)
     res = (sobs.w - sub.point_predictions()) * sobs.mask[..., None]
     point_rss = np.sum(res * res, axis=(1, 2))
-    cnt = st.vertex_counts()
-    jointed = (cnt[st.vertex_of] >= 2).reshape(st.n_sticks, E).any(axis=1)
+    jointed = st.joints_per_stick() > 0
     blocks, who = [], []
     for c in range(st.n_sticks):
         idx = np.flatnonzero(st.labels == c)
@@ -162,6 +161,7 @@ def insert_bridge(st: StickState, obs: Observations, priors: Priors, settings, p
     stick to the joint's other sticks.
     """
     from .assign import candidate_fits
+    from .refine import start_vertices
     from .structure import (
         apply_merge,
         merge_candidates,
@@ -206,12 +206,7 @@ def insert_bridge(st: StickState, obs: Observations, priors: Priors, settings, p
     pred = out.end_predictions()
     out.mu_e = np.concatenate([cut.mu_e, pred[-E:]])
     out.tau_e = np.concatenate([cut.tau_e, np.ones(E)])
-    n = out.vertex_counts()
-    for j in range(J, J + E - 1):  # the free vertices start at their endpoint's prediction
-        out.mu_v[j] = pred[out.vertex_of == j].mean(axis=0)
-        out.alpha[j] = priors.alpha0 + 0.5 * D * F * n[j]
-        out.beta[j] = out.alpha[j] / out.tau_w
-        out.tau_v[j] = out.alpha[j] / out.beta[j] * n[j] + out.tau_t * chain_degree(F)
+    start_vertices(out, np.arange(J, J + E - 1), pred, priors)  # the free ones, at their endpoint's prediction
     update_endpoints(out)
     # The new stick goes into the joint b left: merges of a free endpoint of it with the sticks
     # still on that joint (a 1-point stick's two joints constrain each other little, so a link
@@ -251,9 +246,9 @@ def bridge_points(st: StickState, obs: Observations, priors: Priors, settings, r
     kept: list[dict] = []
     tried: set[tuple[int, ...]] = set()
     sweeps = 0
+    limit = bridge_threshold(obs)
     while len(kept) < max_points:
         now = cur["st"]
-        limit = bridge_threshold(obs)
         cands = [(c, p) for x, c, p in lever_points(now, obs, priors, min_points=settings.min_stick_points)
                  if x > limit]
         # A candidate named by its stick's points, so that one whose trials lost is not retried.

@@ -383,7 +383,6 @@ def apply_articulated_splits(st: StickState, obs: Observations, priors: Priors,
     re-optimises the whole model.
     """
     from .initialise import end_positions
-    from .model import chain_degree
     from .structure import _union
     from .updates import update_endpoints
 
@@ -463,15 +462,9 @@ def apply_articulated_splits(st: StickState, obs: Observations, priors: Priors,
     # Free vertices (and their endpoints) start at their endpoint's prediction under the new
     # motions, as in initial_state (old ones would sit where the old motion put them).
     pred = out.end_predictions()
-    n = out.vertex_counts()
-    fresh = n == 1
+    fresh = out.vertex_counts() == 1
     fresh[st.n_vertices:] = True
-    for j in np.flatnonzero(fresh):
-        i = np.flatnonzero(out.vertex_of == j)
-        out.mu_v[j] = pred[i].mean(axis=0)
-        out.alpha[j] = priors.alpha0 + 0.5 * D * F * n[j]
-        out.beta[j] = out.alpha[j] / out.tau_w
-        out.tau_v[j] = out.alpha[j] / out.beta[j] * n[j] + out.tau_t * chain_degree(F)
+    start_vertices(out, np.flatnonzero(fresh), pred, priors)
     out.mu_e = pred.copy()
     out.tau_e = np.ones(out.ends.shape[0])
     out.ghosts = None
@@ -479,6 +472,20 @@ def apply_articulated_splits(st: StickState, obs: Observations, priors: Priors,
     out._quat = None
     update_endpoints(out)
     return out
+
+
+def start_vertices(st: StickState, vertices: np.ndarray, pred: np.ndarray, priors: Priors) -> None:
+    """Start ``vertices`` (in place) at the mean of their endpoints' predictions ``pred`` (E, F, D),
+    with the precision the prior and the noise level ``tau_w`` give, as in initial_state."""
+    from .model import chain_degree
+
+    F, D = st.n_frames, st.n_dims
+    n = st.vertex_counts()
+    for j in vertices:
+        st.mu_v[j] = pred[st.vertex_of == j].mean(axis=0)
+        st.alpha[j] = priors.alpha0 + 0.5 * D * F * n[j]
+        st.beta[j] = st.alpha[j] / st.tau_w
+        st.tau_v[j] = st.alpha[j] / st.beta[j] * n[j] + st.tau_t * chain_degree(F)
 
 
 # A stick whose misfit ratio (misfit_ratios) exceeds this is suspect of holding points of more
