@@ -50,6 +50,17 @@ Measured on that view (an outside prototype of the first version on the final mo
 all 810 frames): every one of five trials (two joints, both ends) raised BIC, by 20548
 to 35969, and each gave a body tree; the best bridged LTHI between the pelvis and the
 left shin.
+
+*Two-point hubs* (:func:`pair_hubs`, a second call after the sub-tree moves of
+:mod:`.tree`, with ``hubs=True``). Two markers of different limbs can make one
+stick (CMU's LTHI and RTHI, the only marker of each thigh, jointed to the pelvis
+and both shins). A 2-point stick fits any two trajectories, so the screen never
+flags its points; a 2-point stick on three or more joints is split instead: each
+of its points goes as a bridge into the joint of each neighbour, linked to one of
+the stick's *other* neighbours. After the sub-tree moves, because the neighbours
+must hang where they fit first: called before them, on CMU 85_02 from
+108.2/21.5 degrees, the split left LTHI between the left arm and the left leg
+after the moves that followed (0.833 anatomical); after them, a body tree.
 """
 
 from __future__ import annotations
