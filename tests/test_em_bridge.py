@@ -14,7 +14,6 @@ from stickfigure.models.em.bridge import (
     bridge_threshold,
     insert_bridge,
     lever_points,
-    pair_hubs,
 )
 from stickfigure.models.em.model import Priors, normalise, objective
 from stickfigure.models.em.structure import (
@@ -146,65 +145,3 @@ def test_insert_bridge_with_any_number_of_endpoints(n_ends):
     new, _, _, record = insert_bridge(st, obs, Priors(), settings, p, e, np.random.default_rng(1))
     assert new.ends.shape == ((st.n_sticks + 1) * n_ends, 3) and record["point"] == p
     assert new.joints_per_stick()[-1] == 2
-
-
-@pytest.fixture(scope="module")
-def hub():
-    """Walker pelvis and legs with one marker on each thigh, fitted with the two thigh markers
-    as one stick on three joints (pelvis, both shins): CMU's LTHI+RTHI pattern."""
-    from stickfigure.models.em.structure import apply_merge
-
-    w = sf.synthetic.walker(n_frames=80, points_per_stick=4, noise=0.01, seed=3, view=(40.0, 15.0), cycles=2)
-    lab = w.labels_true
-    keep = np.concatenate([np.flatnonzero(lab == 0), np.flatnonzero(lab == 7)[:1], np.flatnonzero(lab == 8),
-                           np.flatnonzero(lab == 9)[:1], np.flatnonzero(lab == 10)])
-    traj = w.slice(points=keep)
-    wrong = traj.labels_true.copy()
-    wrong[wrong == 9] = 7
-    _, wrong = np.unique(wrong, return_inverse=True)  # pelvis 0, the two thigh markers 1, shins 2 and 3
-    settings = EMSettings(n_iter=100, resample_every=0, max_merges=0, refine_sticks=False, dissolve_points=0,
-                          resplit=False, holdout=None, reattach=False, bridge_points=0)
-    priors = Priors()
-    stages, sel, _, _ = fit_stages(traj, settings, priors, np.random.default_rng(0), labels=wrong, n_ends=3)
-    st = stages[sel].state
-    obs, _, _ = normalise(traj.xy)
-    E, rng = st.ends_per_stick, np.random.default_rng(1)
-    for pair in ((1, 0), (1, 2), (1, 3)):
-        cands = [c for c in merge_candidates(st, settings, st.design(obs).n)
-                 if set((c.ends // E).tolist()) == set(pair)]
-        st = apply_merge(st, min(cands, key=lambda c: c.residual), priors, settings, None)
-        st, value, _ = run_em(st, obs, priors, settings, 100, rng, resample=False)
-    return traj, st, value, obs, replace(settings, bridge_points=2), priors
-
-
-def test_pair_hubs_lists_a_two_point_stick_on_three_joints(hub):
-    traj, st, value, obs, settings, priors = hub
-    E = st.ends_per_stick
-    assert st.joints_per_stick().tolist() == [1, 3, 1, 1]
-    (c, trials), = pair_hubs(st)
-    assert c == 1 and len(trials) == 6  # each of its 2 points at each of its 3 neighbours' joints
-    for p, e, partners in trials:
-        assert st.labels[p] == 1 and e // E != 1 and st.vertex_of[e] in st.vertex_of[E:2 * E]
-        assert partners == {0, 2, 3} - {e // E}  # linked to one of the stick's other neighbours
-    assert pair_hubs(st, min_joints=4) == []
-
-
-def test_bridge_points_splits_the_hub_into_the_body_tree(hub):
-    from stickfigure.metrics import tree_consistency
-    from stickfigure.models.em.structure import stick_edges
-
-    traj, st, value, obs, settings, priors = hub
-
-    def crit(s, v):
-        return bic(s, obs, v)
-
-    # The screen alone does not see it: a 2-point stick fits any two trajectories.
-    same = bridge_points(st, obs, priors, settings, np.random.default_rng(3), value, crit, 2)
-    assert same[3] == [] and same[0] is st
-    new, val, sweeps, kept = bridge_points(st, obs, priors, settings, np.random.default_rng(3), value, crit, 2,
-                                           screen=False, hubs=True)
-    assert len(kept) == 1 and kept[0]["pair"] and crit(new, val) > crit(st, value)
-    assert new.n_sticks == 5 and np.bincount(new.labels).tolist().count(1) == 2
-    edges = stick_edges(new, obs)[0]
-    tc = tree_consistency(new.labels, edges, traj.labels_true, traj.edges_true, new.n_sticks, detail=True)
-    assert tc["coherent_sticks"] == 1.0 and tc["anatomical_edges"] == 1.0 and len(edges) == 4

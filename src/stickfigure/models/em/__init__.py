@@ -192,10 +192,7 @@ class EMSkeleton(StickEstimator):
         between the sticks that joint held, and kept when the selection criterion
         improves after EM. A segment with one marker off its joints (CMU's thigh
         marker, the knee marker going with the shin) otherwise bends whatever
-        stick it lands on, as a free 1-point stick cannot survive. After the
-        sub-tree moves, within the same budget, a 2-point stick on three or more
-        joints (two markers of different limbs holding both) is split the same
-        way: one of its points bridged between a neighbour and another neighbour
+        stick it lands on, as a free 1-point stick cannot survive
         (:mod:`.bridge`, docs/em.md section 6). 0: off.
     reattach : bool
         Finally, sub-tree moves: a joint is cut where a part of the tree has a

@@ -50,17 +50,6 @@ Measured on that view (an outside prototype of the first version on the final mo
 all 810 frames): every one of five trials (two joints, both ends) raised BIC, by 20548
 to 35969, and each gave a body tree; the best bridged LTHI between the pelvis and the
 left shin.
-
-*Two-point hubs* (:func:`pair_hubs`, a second call after the sub-tree moves of
-:mod:`.tree`, with ``hubs=True``). Two markers of different limbs can make one
-stick (CMU's LTHI and RTHI, the only marker of each thigh, jointed to the pelvis
-and both shins). A 2-point stick fits any two trajectories, so the screen never
-flags its points; a 2-point stick on three or more joints is split instead: each
-of its points goes as a bridge into the joint of each neighbour, linked to one of
-the stick's *other* neighbours. After the sub-tree moves, because the neighbours
-must hang where they fit first: called before them, on CMU 85_02 from
-108.2/21.5 degrees, the split left LTHI between the left arm and the left leg
-after the moves that followed (0.833 anatomical); after them, a body tree.
 """
 
 from __future__ import annotations
@@ -73,7 +62,7 @@ import numpy as np
 from .model import Ghosts, Observations, Priors, StickState
 from .updates import em_sweep, update_endpoints
 
-__all__ = ["bridge_points", "bridge_threshold", "insert_bridge", "lever_points", "pair_hubs"]
+__all__ = ["bridge_points", "bridge_threshold", "insert_bridge", "lever_points"]
 
 
 def lever_points(st: StickState, obs: Observations, priors: Priors, *, min_points: int = 3,
@@ -162,7 +151,7 @@ def _nearest_joints(st: StickState, obs: Observations, p: int, n: int) -> np.nda
 
 
 def insert_bridge(st: StickState, obs: Observations, priors: Priors, settings, p: int, e: int,
-                  rng: np.random.Generator, stop: Callable | None = None, partners: set[int] | None = None
+                  rng: np.random.Generator, stop: Callable | None = None
                   ) -> tuple[StickState, float, int, dict] | None:
     """Point ``p`` as a new stick in endpoint ``e``'s joint, between ``e``'s stick and the others on it.
 
@@ -222,8 +211,7 @@ def insert_bridge(st: StickState, obs: Observations, priors: Priors, settings, p
     # The new stick goes into the joint b left: merges of a free endpoint of it with the sticks
     # still on that joint (a 1-point stick's two joints constrain each other little, so a link
     # scored anywhere in the tree would go wherever a loose joint fits worst).
-    if partners is None:
-        partners = {int(x // E) for x in np.flatnonzero(st.vertex_of == st.vertex_of[e]) if x != e}
+    partners = {int(x // E) for x in np.flatnonzero(st.vertex_of == st.vertex_of[e]) if x != e}
     cands = []
     for c in merge_candidates(out, replace(settings, max_candidates=None), out.design(obs).n):
         sticks = {int(x) for x in np.unique(c.ends // E)}
@@ -240,49 +228,15 @@ def insert_bridge(st: StickState, obs: Observations, priors: Priors, settings, p
     return out, val, sweeps, {"point": int(p), "detached": b, "linked": linked}
 
 
-def pair_hubs(st: StickState, min_joints: int = 3) -> list[tuple[int, list[tuple[int, int, set[int]]]]]:
-    """Two-point sticks on ``min_joints`` or more joints, with the trials that split them.
-
-    Two markers of different limbs (CMU's LTHI and RTHI) can make one stick: a
-    2-point stick fits any two trajectories, so no point of it passes the screen,
-    and on the pelvis's joint it becomes a hub that holds both legs. A trial takes
-    one of its points ``p`` out as a bridge (:func:`insert_bridge`) into the joint
-    of one neighbour ``b`` (the stick leaves the joint to the new one), linked to
-    one of the stick's *other* neighbours: what is left of the stick is one point
-    on two joints, and the rule of :func:`.structure.merge_candidates` keeps a
-    third off it.
-
-    Returns
-    -------
-    list of (stick, trials)
-        Each trial is ``(p, e, partners)``: the point, the neighbour's endpoint on
-        the stick's joint, and the sticks the new one may link to.
-    """
-    E = st.ends_per_stick
-    size = np.bincount(st.labels, minlength=st.n_sticks)
-    out = []
-    for c in np.flatnonzero((size == 2) & (st.joints_per_stick() >= min_joints)):
-        own = st.vertex_of[c * E:(c + 1) * E]
-        nb = [int(e) for e in np.flatnonzero(np.isin(st.vertex_of, own)) if e // E != c]
-        sticks = {e // E for e in nb}
-        trials = [(int(p), e, sticks - {e // E}) for p in np.flatnonzero(st.labels == c) for e in nb]
-        out.append((int(c), trials))
-    return out
-
-
 def bridge_points(st: StickState, obs: Observations, priors: Priors, settings, rng: np.random.Generator,
                   value: float, criterion: Callable[[StickState, float], float], max_points: int, *,
-                  n_joints: int = 2, max_trials: int = 4, screen: bool = True, hubs: bool = False,
-                  max_pair_trials: int = 8) -> tuple[StickState, float, int, list[dict]]:
+                  n_joints: int = 2, max_trials: int = 4) -> tuple[StickState, float, int, list[dict]]:
     """Greedy bridges (module docstring) until no candidate's best trial improves ``criterion``.
 
-    Candidates of the screen (``screen``) come first; when none is left, with
-    ``hubs``, the 2-point hubs of :func:`pair_hubs` (at most ``max_pair_trials``
-    trials each). Returns the
-    state, its objective, the EM sweeps run and one record per kept bridge
-    (:func:`insert_bridge`; ``"pair": True`` for a hub's). Each trial draws from
-    its own generator spawned from ``rng`` in order; with ``settings.n_jobs`` > 1
-    half of a candidate's trials run in a forked child (the same result).
+    Returns the state, its objective, the EM sweeps run and one record per kept
+    bridge (:func:`insert_bridge`). Each trial draws from its own generator
+    spawned from ``rng`` in order; with ``settings.n_jobs`` > 1 half of a
+    candidate's trials run in a forked child (the same result).
     """
     from .forked import in_halves
     from .structure import child_rng, out_of_reach
@@ -293,39 +247,26 @@ def bridge_points(st: StickState, obs: Observations, priors: Priors, settings, r
     tried: set[tuple[int, ...]] = set()
     sweeps = 0
     limit = bridge_threshold(obs)
-    screened: tuple[StickState, list] | None = None
     while len(kept) < max_points:
         now = cur["st"]
-        if not screen:
-            screened = (now, [])
-        elif screened is None or screened[0] is not now:  # the screen once per model
-            screened = (now, [(c, p) for x, c, p in lever_points(now, obs, priors,
-                                                                  min_points=settings.min_stick_points)
-                              if x > limit])
+        cands = [(c, p) for x, c, p in lever_points(now, obs, priors, min_points=settings.min_stick_points)
+                 if x > limit]
         # A candidate named by its stick's points, so that one whose trials lost is not retried.
-        cands = [(c, p) for c, p in screened[1] if (p,) + tuple(np.flatnonzero(now.labels == c)) not in tried]
-        pair = False
-        if cands:
-            c, p = cands[0]
-            tried.add((p,) + tuple(np.flatnonzero(now.labels == c)))
-            trials = [(p, int(e), None) for j in _nearest_joints(now, obs, p, n_joints)
-                      for e in np.flatnonzero(now.vertex_of == j) if e // E != c][:max_trials]
-        else:
-            found = [(c, t) for c, t in pair_hubs(now) if hubs
-                     and (-1,) + tuple(np.flatnonzero(now.labels == c)) not in tried]
-            if not found:
-                break
-            c, trials = found[0]
-            tried.add((-1,) + tuple(np.flatnonzero(now.labels == c)))
-            trials, pair = trials[:max_pair_trials], True
-        gens = [child_rng(rng) for _ in trials]
+        cands = [(c, p) for c, p in cands if (p,) + tuple(np.flatnonzero(now.labels == c)) not in tried]
+        if not cands:
+            break
+        c, p = cands[0]
+        tried.add((p,) + tuple(np.flatnonzero(now.labels == c)))
+        ends = [int(e) for j in _nearest_joints(now, obs, p, n_joints)
+                for e in np.flatnonzero(now.vertex_of == j) if e // E != c][:max_trials]
+        gens = [child_rng(rng) for _ in ends]
 
-        def run(items: list, now: StickState = now, best: float = cur["best"]) -> list:
+        def run(items: list, now: StickState = now, p: int = p, best: float = cur["best"]) -> list:
             # A stop of its own per trial: it keeps the history of the run it watches.
-            return [insert_bridge(now, obs, priors, settings, p, e, g, out_of_reach(best, criterion), partners)
-                    for (p, e, partners), g in items]
+            return [insert_bridge(now, obs, priors, settings, p, e, g, out_of_reach(best, criterion))
+                    for e, g in items]
 
-        results = in_halves(run, list(zip(trials, gens)), parallel=settings.n_jobs > 1)
+        results = in_halves(run, list(zip(ends, gens)), parallel=settings.n_jobs > 1)
         best = None
         for r in results:
             if r is None:
@@ -337,6 +278,6 @@ def bridge_points(st: StickState, obs: Observations, priors: Priors, settings, r
         if best is None:
             continue
         score, (new, val, _, record) = best
-        kept.append({**record, "pair": True} if pair else record)
+        kept.append(record)
         cur.update(st=new, value=val, best=score)
     return cur["st"], cur["value"], sweeps, kept

@@ -1087,19 +1087,6 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
             stages.append(_stage(cur, obs, val, None, n, ref))
             stages[-1].reattached = moves
             best[selection] = (getattr(stages[-1], selection), len(stages) - 1, cur.copy())
-    if settings.bridge_points:
-        # Two markers of different limbs as one 2-point stick on three joints (bridge.pair_hubs):
-        # on the forest the sub-tree moves left, where each neighbour hangs where it fits.
-        from .bridge import bridge_points
-
-        _, at, cur = best[selection]
-        cur, val, n, bridged = bridge_points(cur.copy(), obs, priors, settings, rng, stages[at].objective,
-                                             lambda s, v: bic(s, obs, v) if selection == "bic" else v,
-                                             settings.bridge_points, screen=False, hubs=True)
-        if bridged:
-            stages.append(_stage(cur, obs, val, None, n, ref))
-            stages[-1].bridged = bridged
-            best[selection] = (getattr(stages[-1], selection), len(stages) - 1, cur.copy())
     for crit in ("objective", "bic"):
         stages[best[crit][1]].state = best[crit][2]
     stages[best[selection][1]].search_bic = search_bic
