@@ -290,29 +290,6 @@ def test_structure_search_on_subsampled_frames(chain):
     assert _edges(full, chain) == _true_edges(chain)
 
 
-def test_subtree_moves_run_again_on_all_frames(chain, monkeypatch):
-    # After the refit on all frames the sub-tree moves run once more (a move can lose on the
-    # searched frames and win on all); the model they return is the skeleton's.
-    from stickfigure.models.em import tree
-
-    calls = []
-    real = tree.reattach_subtrees
-
-    def spy(st, obs, *args, **kw):
-        out = real(st, obs, *args, **kw)
-        calls.append((obs.n_frames, out[1], out[3]))
-        return out
-
-    monkeypatch.setattr(tree, "reattach_subtrees", spy)
-    sk = sf.fit(chain, method="em", random_state=0, labels=chain.labels_true, n_iter=100, max_frames=20)
-    assert [c[0] for c in calls] == [20, chain.n_frames]
-    assert sk.info["refit"]["objective"] == calls[-1][1] == sk.log_likelihood
-    assert sk.info["refit"]["reattached"] == calls[-1][2] == []  # the true tree: nothing to move
-    calls.clear()
-    sf.fit(chain, method="em", random_state=0, labels=chain.labels_true, n_iter=100, max_frames=20, reattach=False)
-    assert calls == []
-
-
 def test_search_frames_keep_reference_and_every_point():
     from stickfigure.models.em.structure import search_frames
 

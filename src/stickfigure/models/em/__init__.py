@@ -200,9 +200,7 @@ class EMSkeleton(StickEstimator):
         below 0.8 times the current one), the merges linking the two parts are scored
         as in the search, and the best one is kept when it is not the old link and
         the selection criterion improves after EM (the greedy search never undoes a
-        merge; docs/em.md section 6). When the search ran on a subset of the frames
-        (``max_frames``), the moves run once more after the refit on all of them
-        (``info["refit"]["reattached"]``). False: off.
+        merge; docs/em.md section 6). False: off.
     max_trees : int, "auto" or None
         The most separate figures (trees) the skeleton may have. The search selects
         a forest where no joint between its trees pays by the criterion, which is
@@ -576,24 +574,10 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
         assert sel.state is not None
         full = extend_frames(sel.state, obs_all, frames, priors)
         full, value, sweeps = run_em(full, obs_all, priors, settings, settings.n_iter, rng)
-        moves: list[dict] = []
-        if settings.reattach:
-            # The sub-tree moves once more, on all frames: the search's pass saw only the
-            # searched ones, where a move can lose that wins on all (CMU 85_02 from 22.4/27.5
-            # degrees: two moves, BIC +26116, a body tree; docs/em.md section 11).
-            from .tree import reattach_subtrees
-
-            def crit(s: StickState, v: float) -> float:
-                return bic(s, obs_all, v) if selection == "bic" else v
-
-            full, value, more, moves = reattach_subtrees(full, obs_all, priors, settings, child_rng(rng), value,
-                                                         crit)
-            sweeps += more
         info0["refit"] = {"search_frames": int(frames.size), "frames": int(obs_all.n_frames),
                           "objective": float(value),
                           "bic": bic(full, obs_all, value),
-                          "n_sweeps": int(sweeps), "labels_changed": int(np.sum(full.labels != sel.labels)),
-                          "reattached": moves}
+                          "n_sweeps": int(sweeps), "labels_changed": int(np.sum(full.labels != sel.labels))}
         sel.state = full
         for s in stages:  # states on the searched frames only would not match the data any more
             if s is not sel:
