@@ -247,12 +247,17 @@ def bridge_points(st: StickState, obs: Observations, priors: Priors, settings, r
     tried: set[tuple[int, ...]] = set()
     sweeps = 0
     limit = bridge_threshold(obs)
+    screened: tuple[StickState, list[tuple[int, int]]] | None = None
     while len(kept) < max_points:
         now = cur["st"]
-        cands = [(c, p) for x, c, p in lever_points(now, obs, priors, min_points=settings.min_stick_points)
-                 if x > limit]
+        if screened is None or screened[0] is not now:
+            # The screen once per model: a candidate whose trials all lost leaves the model as it
+            # was, and the screen (a batched EM run, no generator) would give the same list again.
+            screened = (now, [(c, p) for x, c, p in lever_points(now, obs, priors,
+                                                                  min_points=settings.min_stick_points)
+                              if x > limit])
         # A candidate named by its stick's points, so that one whose trials lost is not retried.
-        cands = [(c, p) for c, p in cands if (p,) + tuple(np.flatnonzero(now.labels == c)) not in tried]
+        cands = [(c, p) for c, p in screened[1] if (p,) + tuple(np.flatnonzero(now.labels == c)) not in tried]
         if not cands:
             break
         c, p = cands[0]
