@@ -86,9 +86,12 @@ def _child(conn: Any, reader: Any, job: Callable[[], Any], group: bool, gate: tu
         signal.signal(signal.SIGTTOU, signal.SIG_IGN)
     # A cancelled child unwinds its own ``with Speculative`` blocks, which cancel its children
     # in turn (a child may fork: the second start's trials); killed outright, they would run on.
+    # SIGTERM arrives blocked (see _start); a cancellation that came before this point is
+    # delivered at the unblocking, inside the ``try`` that handles it.
     signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         try:
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})
             out = ("ok", job())
         except _Cancelled:
             raise
@@ -116,6 +119,24 @@ def _stop_children() -> None:
     for proc in multiprocessing.active_children():
         proc.terminate()
         proc.join()
+
+
+def _start(proc: Any) -> None:
+    """``proc.start()`` with SIGTERM blocked while it forks.
+
+    Python runs a signal's handler at the next bytecode, and right after ``fork`` that is
+    inside the interpreter's after-fork hooks (logging's ``_releaseLock``, threading's
+    ``_after_fork``). There a cancellation (:func:`_on_sigterm`) was swallowed as "Exception
+    ignored", with the logging lock possibly left held, and the child ran on as if never
+    cancelled while its parent waited to join it (a loop of forks cancelled 20 times hung
+    on the sixth). Blocked, the signal waits until the hooks are done and then lands in
+    ordinary code. The new child inherits the mask and unblocks it in :func:`_child`.
+    """
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
+    try:
+        proc.start()
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 class Speculative:
@@ -151,7 +172,7 @@ class Speculative:
             # Not a daemon: a daemonic process may not have children of its own. It never outlives
             # the ``with`` block that started it (cancel).
             proc = ctx.Process(target=_child, args=(send, recv, job, bool(nice), gate), daemon=False)
-            proc.start()
+            _start(proc)
             if gate is not None:
                 # Its own process group, so that it and the children it forks can be reniced
                 # together (result); the priority set from here, so that result cannot undo it
