@@ -182,7 +182,7 @@ def test_cancel_does_not_wait_for_a_child_nobody_collects():
 
 
 def _forks_for_ever():
-    ballast = bytearray(100 << 20)  # noqa: F841  (a larger address space: each fork takes longer)
+    ballast = bytearray(64 << 20)  # noqa: F841  (a larger address space: each fork takes longer)
     while True:
         with Speculative(lambda: 1) as job:
             job.result()
@@ -198,8 +198,9 @@ def test_a_cancellation_during_a_fork_is_not_lost(capfd):
     # A SIGTERM that came while the child forked was raised inside the after-fork hooks
     # (logging's _releaseLock), swallowed there, and the child ran on: a loop of forks
     # cancelled 20 times hung on the sixth, with "Exception ignored" on stderr.
-    assert _finishes(_cancels_a_forking_child_repeatedly, 60.0)
-    assert "Exception ignored" not in capfd.readouterr().err
+    assert _finishes(_cancels_a_forking_child_repeatedly, 120.0), "a cancelled child ran on"
+    err = capfd.readouterr().err
+    assert "Exception ignored" not in err, err[-2000:]
 
 
 def _collects_a_slow_large_result():
