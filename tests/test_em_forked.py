@@ -200,7 +200,8 @@ def test_a_cancellation_during_a_fork_is_not_lost(capfd):
     # cancelled 20 times hung on the sixth, with "Exception ignored" on stderr.
     assert _finishes(_cancels_a_forking_child_repeatedly, 120.0), "a cancelled child ran on"
     err = capfd.readouterr().err
-    assert "Exception ignored" not in err, err[-2000:]
+    # The swallowed cancellation's own text (fd 2 is shared with any process still running).
+    assert "Exception ignored" not in err or "_Cancelled" not in err, err[-2000:]
 
 
 def _collects_a_slow_large_result():
