@@ -376,6 +376,38 @@ def test_compiled_rotation_loops_match_numpy_references():
         U._rotation_energy(Q[:, :2], C3, C_bb)
 
 
+def test_compiled_conversions_give_the_bits_of_the_array_forms():
+    # rot_to_quat and _plane_normal run in compiled loops whose arithmetic is that of scipy's
+    # Rotation.from_matrix and of the numpy form below: the same bits, so the EM's path is unchanged.
+    rng = np.random.default_rng(12)
+    n = 3000
+    Q = np.concatenate([Rotation.random(n, random_state=4).as_matrix(),
+                        Rotation.from_rotvec(rng.normal(size=(n, 3)) * 1e-3).as_matrix(),  # the trace branch
+                        U.complete_rotation(Rotation.random(n, random_state=5).as_matrix()[:, :2])])
+    np.testing.assert_array_equal(U.rot_to_quat(Q), Rotation.from_matrix(Q).as_quat()[:, [3, 0, 1, 2]])
+    assert U.rot_to_quat(Q.reshape(3, n, 3, 3)).shape == (3, n, 4)
+    # not orthonormal to scipy's tolerance: scipy orthogonalises it first, and so do we (through it)
+    bent = Q[:5] * np.array([1.0, 1.0 + 1e-6, 1.0])[:, None]
+    np.testing.assert_array_equal(U.rot_to_quat(bent), Rotation.from_matrix(bent).as_quat()[:, [3, 0, 1, 2]])
+    with pytest.raises(ValueError, match="determinant"):
+        U.rot_to_quat(-Q[:2])
+    B = rng.normal(size=(n, 3, 3)) * rng.uniform(0.01, 10.0, size=(n, 1, 1))
+    B[: n // 3, 2] *= 1e-3  # nearly planar sources, where the normal matters
+    C = B @ np.swapaxes(B, 1, 2)
+    lam_min = G.min_eig_sym3(C)
+    lam_max = -G.min_eig_sym3(-C)
+    M = C - lam_min[:, None, None] * np.eye(3)
+    cands = np.stack([np.cross(M[:, 0], M[:, 1]), np.cross(M[:, 0], M[:, 2]), np.cross(M[:, 1], M[:, 2])], axis=1)
+    norms = np.linalg.norm(cands, axis=-1)
+    k = np.argmax(norms, axis=-1)
+    want = cands[np.arange(n), k] / np.maximum(norms[np.arange(n), k], 1e-300)[:, None]
+    normal, ratio = U._plane_normal(C.reshape(3, n // 3, 3, 3))
+    np.testing.assert_array_equal(normal.reshape(n, 3), want)
+    np.testing.assert_array_equal(ratio.reshape(n), lam_min / np.maximum(lam_max, 1e-300))
+    # the normal is the smallest eigenvector: C n = lambda_min n
+    np.testing.assert_allclose((C @ want[..., None])[..., 0], lam_min[:, None] * want, atol=1e-8 * np.abs(C).max())
+
+
 def test_block_score_is_the_change_of_the_full_objective(scene):
     st, obs, pri = _state(scene)
     settings = S.EMSettings(n_iter_merge=5, merge_baseline=False, reuse_scores=False)

@@ -41,7 +41,6 @@ from scipy.spatial.transform import Rotation
 
 from ... import _rotation_kernels as _rk
 from ...geometry import flat_rotation_batch
-from ...geometry import min_eig_sym3 as _min_eig_sym3
 from ...geometry import rotation_energy as _rotation_energy
 from ...geometry import rotation_newton_step as newton_step
 from . import _point_kernels as _pk
@@ -200,11 +199,19 @@ def quat_to_rot(q: np.ndarray) -> np.ndarray:
 
 
 def rot_to_quat(R: np.ndarray) -> np.ndarray:
-    """Unit quaternions (..., 4) = (w, x, y, z) of proper rotations (..., 3, 3) (scipy's Rotation)."""
-    out = np.zeros(R.shape[:-2] + (4,))
-    if out.size:
-        out[:] = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat()[:, [3, 0, 1, 2]].reshape(out.shape)
-    return out
+    """Unit quaternions (..., 4) = (w, x, y, z) of proper rotations (..., 3, 3), as scipy's Rotation gives them.
+
+    Compiled (:func:`stickfigure._rotation_kernels.rot_to_quat`, the same bits as
+    ``Rotation.from_matrix``); the matrices that are not orthonormal to scipy's
+    tolerance, or not proper, go to scipy itself (which orthogonalises or refuses them).
+    """
+    flat = np.ascontiguousarray(R, dtype=float).reshape(-1, 3, 3)
+    out = np.empty((flat.shape[0], 4))
+    ok = np.empty(flat.shape[0], dtype=np.bool_)
+    _rk.rot_to_quat(flat, out, ok)
+    if not ok.all():
+        out[~ok] = Rotation.from_matrix(flat[~ok]).as_quat()[:, [3, 0, 1, 2]]
+    return out.reshape(R.shape[:-2] + (4,))
 
 
 def complete_rotation(R: np.ndarray) -> np.ndarray:
@@ -255,18 +262,14 @@ def _plane_normal(C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unit eigenvector of the smallest eigenvalue of symmetric 3x3 ``C`` and lambda_min / lambda_max.
 
     The eigenvector is the longest cross product of two rows of ``C - lambda_min I``
-    (closed form, batched).
+    (closed form, :func:`stickfigure.geometry.min_eig_sym3` for the eigenvalues;
+    one matrix at a time in a compiled loop, :func:`stickfigure._rotation_kernels.plane_normals`).
     """
-    lam_min = _min_eig_sym3(C)
-    lam_max = -_min_eig_sym3(-C)
-    M = C - lam_min[..., None, None] * np.eye(3)
-    cands = np.stack([np.cross(M[..., 0, :], M[..., 1, :]), np.cross(M[..., 0, :], M[..., 2, :]),
-                      np.cross(M[..., 1, :], M[..., 2, :])], axis=-2)
-    norms = np.linalg.norm(cands, axis=-1)
-    k = np.argmax(norms, axis=-1)
-    n = np.take_along_axis(cands, k[..., None, None], axis=-2)[..., 0, :]
-    n = n / np.maximum(np.take_along_axis(norms, k[..., None], axis=-1), 1e-300)
-    return n, lam_min / np.maximum(lam_max, 1e-300)
+    flat = np.ascontiguousarray(C, dtype=float).reshape(-1, 3, 3)
+    n = np.empty((flat.shape[0], 3))
+    ratio = np.empty(flat.shape[0])
+    _rk.plane_normals(flat, n, ratio)
+    return n.reshape(C.shape[:-1]), ratio.reshape(C.shape[:-2])
 
 
 def _polar_rows(C: np.ndarray) -> np.ndarray:
@@ -317,7 +320,6 @@ def best_rotations(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, axes: np.n
     mirrored starts alone (the current R is not polished: cheap where few
     frames are ambiguous).
     """
-    D = R.shape[-2]
     batch = R.shape[:-2]
     best, best_e = R, _rotation_energy(R, C_ab, C_bb)
     if not only_mirrors:
