@@ -349,6 +349,22 @@ def test_compiled_rotation_loops_match_numpy_references():
         assert keep.sum() > n // 2  # the comparison covers taken steps
         np.testing.assert_allclose(R_new, R_ref, atol=1e-9)
         np.testing.assert_allclose(e_new, np.minimum(e, e_ref), rtol=1e-10, atol=1e-9)
+        # Near the minimum H is positive definite and the loop skips the eigenvalue (the shift
+        # is then 1e-6 |H|max): the same step as the reference there too.
+        Rc = R_new
+        for _ in range(12):
+            Rc = U.newton_step(Rc, C_ab, C_bb)
+        g, H = G.rotation_newton_model(Rc, C_ab, C_bb)
+        lam = np.linalg.eigvalsh(H)[:, 0]
+        assert np.sum(lam > 1e-6 * np.trace(H, axis1=1, axis2=2)) > n // 2  # most are definite
+        mu = np.maximum(0.0, -lam) + 1e-6 * np.abs(H).max(axis=(1, 2)) + 1e-300
+        w = -np.linalg.solve(H + mu[:, None, None] * np.eye(3), g[..., None])[..., 0]
+        w *= np.minimum(1.0, 0.5 / np.maximum(np.linalg.norm(w, axis=1), 1e-300))[:, None]
+        R_ref = Rc @ Rotation.from_rotvec(w).as_matrix()
+        e_c = U._rotation_energy(Rc, C_ab, C_bb)
+        e_ref = np.sum((R_ref @ C_bb - 2.0 * C_ab) * R_ref, axis=(1, 2))
+        R_ref = np.where((e_ref < e_c)[:, None, None], R_ref, Rc)
+        np.testing.assert_allclose(U.newton_step(Rc, C_ab, C_bb), R_ref, atol=1e-9)
         # Procrustes: the power iteration on Horn's N(C) + sigma I from the current quaternion
         q = U.rot_to_quat(Q)
         C = C_ab if D == 3 else np.concatenate([C_ab, Q[:, 2:3] @ C_bb], axis=1)

@@ -123,7 +123,19 @@ def rotation_newton_step(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, e_ol
                     h += diag
                 H[j, k] = h
                 hmax = max(hmax, abs(h))
-        mu = max(0.0, -_min_eig_sym3(H)) + 1e-6 * hmax + 1e-300
+        # The shift needs the smallest eigenvalue only where H may not be positive definite:
+        # where the leading minors are positive and lambda_min >= det / tr^2 (lambda_max <= tr)
+        # exceeds 1e-8 tr, far above the closed form's rounding, max(0, -lambda_min) is 0 as
+        # the closed form would give it, without its acos and cos.
+        m1 = H[0, 0]
+        m2 = H[0, 0] * H[1, 1] - H[0, 1] * H[1, 0]
+        m3 = (H[0, 0] * (H[1, 1] * H[2, 2] - H[1, 2] * H[2, 1]) - H[0, 1] * (H[1, 0] * H[2, 2] - H[1, 2] * H[2, 0])
+              + H[0, 2] * (H[1, 0] * H[2, 1] - H[1, 1] * H[2, 0]))
+        trH = H[0, 0] + H[1, 1] + H[2, 2]
+        if m1 > 0.0 and m2 > 0.0 and m3 > 1e-8 * trH * trH * trH:
+            mu = 0.0 + 1e-6 * hmax + 1e-300
+        else:
+            mu = max(0.0, -_min_eig_sym3(H)) + 1e-6 * hmax + 1e-300
         for j in range(3):
             H[j, j] += mu
         # w = H^-1 (-g) by cofactors
