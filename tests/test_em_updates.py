@@ -405,6 +405,9 @@ def test_compiled_conversions_give_the_bits_of_the_array_forms():
     # not orthonormal to scipy's tolerance: scipy orthogonalises it first, and so do we (through it)
     bent = Q[:5] * np.array([1.0, 1.0 + 1e-6, 1.0])[:, None]
     np.testing.assert_array_equal(U.rot_to_quat(bent), Rotation.from_matrix(bent).as_quat()[:, [3, 0, 1, 2]])
+    sheared = Q[:5].copy()
+    sheared[:, 0, 1] += 1e-9  # within scipy's relative tolerance on the diagonal, beyond its 1e-12 off it
+    np.testing.assert_array_equal(U.rot_to_quat(sheared), Rotation.from_matrix(sheared).as_quat()[:, [3, 0, 1, 2]])
     with pytest.raises(ValueError, match="determinant"):
         U.rot_to_quat(-Q[:2])
     B = rng.normal(size=(n, 3, 3)) * rng.uniform(0.01, 10.0, size=(n, 1, 1))
