@@ -37,31 +37,23 @@ _A1 = nb.float64[::1]
 _JIT = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy"}
 
 
-@nb.njit(nb.float64(_A2, _I3, _I3, nb.int64), **_JIT)
-def _energy_of(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, i: int) -> float:
-    # -2 tr(R C_ab[i]^T) + tr(R C_bb[i] R^T) for one R (D, 3)
+@nb.njit(inline="always", **_JIT)  # inlined into its callers: a call per matrix costs 2x here
+def _energy_at(R: np.ndarray, r: int, C_ab: np.ndarray, C_bb: np.ndarray, i: int) -> float:
+    # -2 tr(R[r] C_ab[i]^T) + tr(R[r] C_bb[i] R[r]^T). The loops here index the batch arrays
+    # directly: taking ``R[i]`` as a view costs more than this arithmetic (3x in rotation_energy).
     e = 0.0
-    for a in range(R.shape[0]):
+    for a in range(R.shape[1]):
         for j in range(3):
-            rc = R[a, 0] * C_bb[i, 0, j] + R[a, 1] * C_bb[i, 1, j] + R[a, 2] * C_bb[i, 2, j]
-            e += (rc - 2.0 * C_ab[i, a, j]) * R[a, j]
+            rc = R[r, a, 0] * C_bb[i, 0, j] + R[r, a, 1] * C_bb[i, 1, j] + R[r, a, 2] * C_bb[i, 2, j]
+            e += (rc - 2.0 * C_ab[i, a, j]) * R[r, a, j]
     return e
 
 
 @nb.njit(nb.void(_I3, _I3, _I3, _A1), **_JIT)
 def rotation_energy(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, out: np.ndarray) -> None:
-    """out[i] = -2 tr(R_i C_ab,i^T) + tr(R_i C_bb,i R_i^T).
-
-    The loops here index the batch arrays directly: taking ``R[i]`` as a view costs
-    more than the arithmetic (3x in this loop).
-    """
+    """out[i] = -2 tr(R_i C_ab,i^T) + tr(R_i C_bb,i R_i^T)."""
     for i in range(R.shape[0]):
-        e = 0.0
-        for a in range(R.shape[1]):
-            for j in range(3):
-                rc = R[i, a, 0] * C_bb[i, 0, j] + R[i, a, 1] * C_bb[i, 1, j] + R[i, a, 2] * C_bb[i, 2, j]
-                e += (rc - 2.0 * C_ab[i, a, j]) * R[i, a, j]
-        out[i] = e
+        out[i] = _energy_at(R, i, C_ab, C_bb, i)
 
 
 @nb.njit(nb.float64(nb.float64[:, ::1]), **_JIT)
@@ -91,7 +83,7 @@ def rotation_newton_step(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, e_ol
     H = np.empty((3, 3))
     K = np.empty((3, 3))
     Q = np.empty((3, 3))
-    Rn = np.empty((D, 3))
+    Rn = np.empty((1, D, 3))  # the trial rotation, as a batch of one for _energy_at
     g = np.empty(3)
     for i in range(R.shape[0]):
         for j in range(3):
@@ -168,12 +160,12 @@ def rotation_newton_step(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, e_ol
                 Q[j, k] = (1.0 if j == k else 0.0) + s1 * K[j, k] + s2 * kk
         for r in range(D):
             for k in range(3):
-                Rn[r, k] = R[i, r, 0] * Q[0, k] + R[i, r, 1] * Q[1, k] + R[i, r, 2] * Q[2, k]
-        e_new = _energy_of(Rn, C_ab, C_bb, i)
+                Rn[0, r, k] = R[i, r, 0] * Q[0, k] + R[i, r, 1] * Q[1, k] + R[i, r, 2] * Q[2, k]
+        e_new = _energy_at(Rn, 0, C_ab, C_bb, i)
         take = e_new < e_old[i]
         for r in range(D):
             for k in range(3):
-                R_out[i, r, k] = Rn[r, k] if take else R[i, r, k]
+                R_out[i, r, k] = Rn[0, r, k] if take else R[i, r, k]
         e_out[i] = e_new if take else e_old[i]
 
 
