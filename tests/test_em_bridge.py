@@ -14,14 +14,19 @@ from stickfigure.models.em.bridge import (
     bridge_threshold,
     insert_bridge,
     lever_points,
+    split_pair,
+    unpair_hubs,
 )
 from stickfigure.models.em.model import Priors, normalise, objective
 from stickfigure.models.em.structure import (
     EMSettings,
+    apply_merge,
     bic,
     components,
     merge_candidates,
     run_em,
+    score_candidates,
+    stick_edges,
 )
 
 
@@ -145,3 +150,120 @@ def test_insert_bridge_with_any_number_of_endpoints(n_ends):
     new, _, _, record = insert_bridge(st, obs, Priors(), settings, p, e, np.random.default_rng(1))
     assert new.ends.shape == ((st.n_sticks + 1) * n_ends, 3) and record["point"] == p
     assert new.joints_per_stick()[-1] == 2
+
+
+# ----------------------------------------------------------------- 2-point hubs (unpair_hubs)
+def _hub_figure(seed: int, frames: int = 120):
+    """A pelvis (5 points) with two one-marker thighs on its end and a 4-point shin below each."""
+    from scipy.spatial.transform import Rotation
+
+    from stickfigure.synthetic import FigureSpec, _finish, _forward_kinematics, _smooth_rotvecs
+
+    rng = np.random.default_rng(seed)
+    parent = np.array([-1, 0, 0, 1, 2])
+    lengths = np.array([0.6, 1.0, 1.0, 1.0, 1.0])
+    attach = np.array([[0, 0, 0], [0.6, 0, 0.15], [0.6, 0, -0.15], [1.0, 0, 0], [1.0, 0, 0]])
+    counts = np.array([5, 1, 1, 4, 4])
+    labels = np.repeat(np.arange(5), counts)
+    local = np.concatenate([np.c_[rng.uniform(0.2, 0.8, n) * lengths[s], rng.normal(0, 0.2, (n, 2))]
+                            for s, n in enumerate(counts)])
+    spec = FigureSpec(parent=parent, attach=attach, lengths=lengths, local=local, labels=labels)
+    rest = rng.uniform(-np.pi, np.pi, size=(5, 1, 3))
+    motion = _smooth_rotvecs(rng, 5, frames, 0.9, False)
+    motion[0] *= 0.5
+    rel = Rotation.from_rotvec((rest + motion).reshape(-1, 3)).as_matrix().reshape(5, frames, 3, 3)
+    pts, joints = _forward_kinematics(spec, rel, np.zeros((frames, 3)))
+    return _finish(pts, joints, spec, rng, 0.01, (30.0, 20.0), False, {"generator": "test"}, frame_rate=30.0)
+
+
+def _lumped_hub(seed: int):
+    """The hub figure with the two thigh markers on one stick, joined to the pelvis and both shins
+    (the state CMU 85_02 left: LTHI+RTHI between the pelvis and the legs)."""
+    from stickfigure.models.em.initialise import initial_state
+
+    traj = _hub_figure(seed)
+    lab = traj.labels_true
+    wrong = np.where(lab == 2, 1, np.where(lab > 2, lab - 1, lab))
+    obs, _, _ = normalise(traj.xy)
+    settings, priors = EMSettings(n_iter=100, resample_every=0), Priors()
+    rng = np.random.default_rng(0)
+    st, _, _ = run_em(initial_state(obs, wrong, 4, priors, rng, n_ends=3), obs, priors, settings, 100, rng)
+    E = st.ends_per_stick
+    for pair in ({0, 1}, {1, 2}, {1, 3}):
+        cands = [c for c in merge_candidates(st, replace(settings, max_candidates=None))
+                 if set((c.ends // E).tolist()) == pair]
+        blocks = score_candidates(st, obs, priors, settings, cands, rng)
+        b = int(np.argmax([c.score for c in cands]))
+        st = apply_merge(st, cands[b], priors, settings, blocks[b])
+        st, value, _ = run_em(st, obs, priors, settings, 100, rng)
+    return traj, st, value, obs, settings, priors
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_unpair_hubs_parts_two_lumped_one_marker_segments(seed):
+    traj, st, value, obs, settings, priors = _lumped_hub(seed)
+    assert st.joints_per_stick().tolist() == [1, 3, 1, 1]  # the pair is the hub of three sticks
+    p, q = np.flatnonzero(traj.labels_true == 1)[0], np.flatnonzero(traj.labels_true == 2)[0]
+
+    def crit(s, v):
+        return bic(s, obs, v)
+
+    new, val, sweeps, kept = unpair_hubs(st, obs, priors, settings, np.random.default_rng(1), value, crit)
+    assert kept == [[p, q]] and sweeps > 0 and crit(new, val) > crit(st, value)
+    assert new.n_sticks == 5 and components(new)[0].max() == 0
+    # The known answer: the true groups and the true tree (stick numbers mapped through the points).
+    from stickfigure.metrics import edge_scores
+
+    assert len(set(zip(new.labels.tolist(), traj.labels_true.tolist()))) == 5
+    scores = edge_scores(new.labels, stick_edges(new)[0], traj.labels_true, traj.edges_true)
+    assert scores["edge_f1"] == 1.0 and scores["exact"]
+    # On the right model nothing is tried: it comes back as it was.
+    same, v, n, none = unpair_hubs(new, obs, priors, settings, np.random.default_rng(1), val, crit)
+    assert none == [] and same is new and v == val and n == 0
+
+
+def test_split_pair_moves_each_joint_with_the_nearer_point():
+    traj, st, value, obs, settings, priors = _lumped_hub(0)
+    E = st.ends_per_stick
+    out = split_pair(st, obs, priors, 1)
+    assert out is not None and out.n_sticks == st.n_sticks + 1
+    q = int(np.flatnonzero(out.labels == st.n_sticks)[0])
+    # The pelvis and one shin stay with one point, the other shin goes with q: two trees.
+    assert out.joints_per_stick()[1] + out.joints_per_stick()[-1] == 3
+    assert components(out)[0].max() == 1
+    shin_of_q = 2 if traj.labels_true[q] == 1 else 3  # the shin below q's thigh (stick numbers of st)
+    mates = {int(x // E) for x in np.flatnonzero(np.isin(out.vertex_of, out.vertex_of[E * st.n_sticks:]))}
+    assert shin_of_q in mates and 0 not in mates
+    with pytest.raises(ValueError, match="stick of two"):
+        split_pair(st, obs, priors, 0)
+
+
+def test_unpair_is_a_parameter_and_a_named_stage():
+    from stickfigure.plot.em import stage_kind
+
+    traj = _hub_figure(0, frames=40)
+    with pytest.raises(ValueError, match="unpair"):
+        sf.fit(traj, method="em", unpair="yes")
+    sk = sf.fit(traj, method="em", random_state=0, n_iter=40, unpair=False)
+    assert all(s["unpaired"] == [] for s in sk.info["stages"])
+    assert stage_kind({"merged": None, "unpaired": [[5, 6]]}, 4) == "pairs parted"
+
+
+def test_two_one_point_sticks_are_linked_only_where_nothing_else_spans(monkeypatch):
+    # A vertex of a 4-point stick and two 1-point sticks: the 1-point ones share a point
+    # closely whatever they are, so the tree is the star from the other one.
+    from types import SimpleNamespace
+
+    import stickfigure.models.em.structure as structure
+
+    residual = {(0, 1): 0.3, (0, 2): 0.2, (1, 2): 0.01}
+    monkeypatch.setattr(structure, "joint_least_squares",
+                        lambda st, sticks, k0: (None, residual[tuple(sorted(sticks))]))
+    st = SimpleNamespace(labels=np.array([0, 0, 0, 0, 1, 2]), n_sticks=3, n_vertices=4, ends_per_stick=2,
+                         vertex_of=np.array([0, 1, 0, 2, 0, 3]), ends=np.zeros((6, 3)))
+    assert stick_edges(st) == ([(0, 1), (0, 2)], [0, 0])
+    # Two 2-point sticks may be a chain at that vertex: the residuals decide, as with three
+    # 1-point sticks.
+    for labels in ([0, 0, 0, 0, 1, 1, 2, 2], [0, 1, 2]):
+        st.labels = np.array(labels)
+        assert stick_edges(st) == ([(0, 2), (1, 2)], [0, 0])

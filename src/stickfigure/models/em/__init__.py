@@ -185,6 +185,14 @@ class EMSkeleton(StickEstimator):
         motion-capture rows instead of 11. Not judged by the held-out check's
         prediction, which rejected every split that gave a body tree (docs/em.md
         section 11). 0: off.
+    unpair : bool
+        Then every stick of two points on three or more joints (a hub of three
+        sticks) is tried as two 1-point sticks, each keeping the joints nearer its
+        point, the two parts of the tree joined again by their best merge; kept
+        when the selection criterion improves after EM. Two markers alone on a
+        hub are one-marker segments of two limbs lumped together (CMU's LTHI+RTHI,
+        joined to the pelvis and both shins), which a 2-point stick fits exactly
+        (:func:`.bridge.unpair_hubs`, docs/em.md section 6). False: off.
     bridge_points : int
         Then, up to this many *bridges*: a point whose removal lets the rest of its
         stick fit far better (excess above half the BIC charge of a new stick) is
@@ -274,7 +282,8 @@ class EMSkeleton(StickEstimator):
                  holdout: float | None = 0.15, holdout_masks: int = 1, holdout_points: int = 2,
                  dissolve_scope: str = "all",
                  remerge: bool = True, split_dissolved: int = 4,
-                 bridge_points: int = 2, reattach: bool = True, max_trees: int | str | None = "auto",
+                 unpair: bool = True, bridge_points: int = 2, reattach: bool = True,
+                 max_trees: int | str | None = "auto",
                  max_frames: int | None = 400, oversegment: float | None = 3.5, n_jobs: int | None = None,
                  tau_p: float = 25.0,
                  alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e6, impute_iter: int = 100,
@@ -309,6 +318,7 @@ class EMSkeleton(StickEstimator):
         self.dissolve_scope = dissolve_scope
         self.remerge = remerge
         self.split_dissolved = split_dissolved
+        self.unpair = unpair
         self.bridge_points = bridge_points
         self.reattach = reattach
         self.max_trees = max_trees
@@ -352,7 +362,7 @@ class EMSkeleton(StickEstimator):
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(map(repr, allowed))}, got {getattr(self, name)!r}")
-        for name in ("impute_joint_ends", "impute_rotation_prior"):
+        for name in ("impute_joint_ends", "impute_rotation_prior", "unpair"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
         if isinstance(self.max_trees, (str, bool)) and self.max_trees != "auto":
@@ -384,6 +394,7 @@ class EMSkeleton(StickEstimator):
                               holdout_masks=int(self.holdout_masks), holdout_points=int(self.holdout_points),
                               dissolve_scope=str(self.dissolve_scope),
                               remerge=bool(self.remerge), split_dissolved=int(self.split_dissolved),
+                              unpair=bool(self.unpair),
                               bridge_points=int(self.bridge_points), reattach=bool(self.reattach),
                               max_trees=None if self.max_trees in (None, "auto") else int(self.max_trees),
                               endpoint_init=self.endpoint_init, n_ends=int(self.n_ends))
@@ -673,6 +684,7 @@ def _skeleton(stages: list[Stage], selected: int, norm: tuple[np.ndarray, float]
             "reattached": s.reattached,
             "joined": s.joined,
             "bridged": s.bridged,
+            "unpaired": s.unpaired,
             "ends_xy": (s.ends_xy * scale + centre).tolist(), "joints_xy": (s.joints_xy * scale + centre).tolist(),
         } for s in stages],
         "objective_stage": int(np.argmax([s.objective for s in stages])),

@@ -62,7 +62,7 @@ import numpy as np
 from .model import Ghosts, Observations, Priors, StickState
 from .updates import em_sweep, update_endpoints
 
-__all__ = ["bridge_points", "bridge_threshold", "insert_bridge", "lever_points"]
+__all__ = ["bridge_points", "bridge_threshold", "insert_bridge", "lever_points", "split_pair", "unpair_hubs"]
 
 
 def lever_points(st: StickState, obs: Observations, priors: Priors, *, min_points: int = 3,
@@ -286,3 +286,130 @@ def bridge_points(st: StickState, obs: Observations, priors: Priors, settings, r
         kept.append(record)
         cur.update(st=new, value=val, best=score)
     return cur["st"], cur["value"], sweeps, kept
+
+
+# ----------------------------------------------------------------- 2-point hubs
+#: A 2-point stick on at least this many joints is tried as two 1-point sticks (:func:`unpair_hubs`).
+UNPAIR_MIN_JOINTS = 3
+
+
+def _rms_distance(st: StickState, obs: Observations, j: int, p: int) -> float:
+    """RMS distance of vertex ``j``'s trajectory from point ``p``'s over ``p``'s observed frames."""
+    m = obs.mask[p]
+    return float(np.sqrt(np.sum(m * np.sum((st.mu_v[j] - obs.w[p]) ** 2, axis=1)) / max(m.sum(), 1.0)))
+
+
+def split_pair(st: StickState, obs: Observations, priors: Priors, c: int) -> StickState | None:
+    """Stick ``c`` of two points as two 1-point sticks, each on the joints nearer its point.
+
+    The second point ``q`` moves to a new stick (the last) that starts at ``c``'s
+    motion and local coordinates. Each joint of ``c`` goes with the point its vertex
+    trajectory is nearer (RMS over the point's observed frames); one that goes with
+    ``q`` leaves ``c``'s endpoint (:func:`.tree.detach_endpoint`) for the new
+    stick's, at the same local coordinates. The new stick's other endpoints start
+    free, beyond ``q`` from its first joint. The tree falls into two parts, which
+    the caller joins again. None when one point is nearer every joint.
+    """
+    from .refine import start_vertices
+    from .tree import detach_endpoint
+
+    E = st.ends_per_stick
+    F, D = st.n_frames, st.n_dims
+    idx = np.flatnonzero(st.labels == c)
+    if idx.size != 2:
+        raise ValueError(f"stick {c} holds {idx.size} points; split_pair takes a stick of two")
+    p, q = (int(x) for x in idx)
+    cnt = st.vertex_counts()
+    jointed = [e for e in range(E * c, E * (c + 1)) if cnt[st.vertex_of[e]] >= 2]
+    moved = [e for e in jointed
+             if _rms_distance(st, obs, int(st.vertex_of[e]), q) < _rms_distance(st, obs, int(st.vertex_of[e]), p)]
+    if not moved or len(moved) == len(jointed):
+        return None
+    cut = st
+    for e in moved:
+        cut = detach_endpoint(cut, e, priors)
+    S, J = cut.n_sticks, cut.n_vertices
+    out = cut.copy()
+    out.labels = cut.labels.copy()
+    out.labels[q] = S
+    out.rot = np.concatenate([cut.rot, cut.rot[c:c + 1]])
+    out.trans = np.concatenate([cut.trans, cut.trans[c:c + 1]])
+    lq = cut.local[q]
+    k0 = cut.ends[moved[0]]
+    n_free = E - len(moved)
+    ends = [cut.ends[e] for e in moved] + [lq + (lq - k0) / (i + 1) for i in range(n_free)]
+    verts = [int(st.vertex_of[e]) for e in moved] + list(J + np.arange(n_free))
+    out.ends = np.concatenate([cut.ends, np.stack(ends)])
+    out.vertex_of = np.concatenate([cut.vertex_of, np.asarray(verts, np.int64)])
+    out.mu_v = np.concatenate([cut.mu_v, np.zeros((n_free, F, D))])
+    out.tau_v = np.concatenate([cut.tau_v, np.ones((n_free, F))])
+    out.alpha = np.concatenate([cut.alpha, np.ones(n_free)])
+    out.beta = np.concatenate([cut.beta, np.ones(n_free)])
+    if cut.ghosts is not None:
+        g = cut.ghosts
+        z = Ghosts.empty(n_free, F, D)
+        out.ghosts = Ghosts(np.concatenate([g.n, z.n]), np.concatenate([g.sum, z.sum]),
+                            np.concatenate([g.sq, z.sq]), np.concatenate([g.var, z.var]))
+    out._design = None
+    out._quat = None
+    pred = out.end_predictions()
+    out.mu_e = np.concatenate([cut.mu_e, pred[-E:]])
+    out.tau_e = np.concatenate([cut.tau_e, np.ones(E)])
+    start_vertices(out, np.arange(J, J + n_free), pred, priors)  # the free ones, at their endpoint's prediction
+    update_endpoints(out)
+    return out
+
+
+def unpair_hubs(st: StickState, obs: Observations, priors: Priors, settings, rng: np.random.Generator,
+                value: float, criterion: Callable[[StickState, float], float]
+                ) -> tuple[StickState, float, int, list[list[int]]]:
+    """Every 2-point stick on ``UNPAIR_MIN_JOINTS`` or more joints tried as two 1-point sticks.
+
+    A body's hubs (pelvis, thorax) carry several markers. Two markers alone on a
+    stick that three others hang from are, in every case seen, the one-marker
+    segments of two limbs lumped together: CMU's two thigh markers LTHI+RTHI on a
+    stick joined to the pelvis and both shins, left over by the first clustering
+    and cut off as one piece by the articulated split (its plane cuts keep the two
+    together). Such a stick fits its two points exactly (a 2-point stick fits any
+    two trajectories), so no screen of point residuals flags it, and the held-out
+    check has no better place for either marker. Each such stick is split by
+    :func:`split_pair`; the two parts of the tree are joined again by the best
+    merge between them, as ``join_trees`` joins a forest (scored as the search
+    scores merges), EM is re-run, and the result is kept when ``criterion``
+    improves. A 2-point stick on two joints is a segment of a chain (an upper
+    arm's LUPA+LELB) and is left alone: splitting those raised BIC too (by
+    350-4100 on CMU 85_02, the vertex terms' bias of docs/em.md section 11) and
+    only fragmented the segments.
+
+    Returns the state, its objective, the EM sweeps run and the point pairs split.
+    """
+    from .structure import components, run_em
+    from .tree import join_trees
+
+    best = criterion(st, value)
+    kept: list[list[int]] = []
+    sweeps = 0
+    tried: set[tuple[int, ...]] = set()
+    while True:
+        hubs = st.joints_per_stick() >= UNPAIR_MIN_JOINTS
+        sizes = np.bincount(st.labels, minlength=st.n_sticks)
+        todo = [c for c in range(st.n_sticks) if sizes[c] == 2 and hubs[c]
+                and tuple(np.flatnonzero(st.labels == c).tolist()) not in tried]
+        if not todo:
+            break
+        c = todo[0]
+        pts = tuple(np.flatnonzero(st.labels == c).tolist())
+        tried.add(pts)
+        new = split_pair(st, obs, priors, c)
+        if new is None:
+            continue
+        trees = int(components(st)[0].max()) + 1
+        new, val, n = run_em(new, obs, priors, settings, settings.n_iter, rng)
+        sweeps += n
+        new, val, n, _ = join_trees(new, obs, priors, settings, rng, val, trees)
+        sweeps += n
+        score = criterion(new, val)
+        if score > best:
+            best, st, value = score, new, val
+            kept.append(list(pts))
+    return st, value, sweeps, kept

@@ -108,6 +108,7 @@ class EMSettings:
     dissolve_scope: str = "all"
     remerge: bool = True
     split_dissolved: int = 4
+    unpair: bool = True
     bridge_points: int = 2
     reattach: bool = True
     max_trees: int | None = None
@@ -241,13 +242,20 @@ def stick_edges(st: StickState, obs: Observations | None = None) -> tuple[list[t
     sticks gives k - 1 edges: the minimum spanning tree of its sticks under the
     pairwise least-squares joint residual (how well the two sticks alone can
     share a point over all frames), so the tree links the sticks that really
-    articulate about that point.
+    articulate about that point. Two 1-point sticks are linked only where no
+    other spanning tree exists: a 1-point stick's rotation is fixed by its
+    joints alone, so any two of them share a point closely whatever they are
+    (CMU's two thigh markers as 1-point sticks on the pelvis's vertex were linked
+    to each other, not both to the pelvis). A 2-point stick's point pair fixes
+    two of its three angles, and a chain of two of them at one vertex can be
+    right (HDM05's RTHI+RKNE and RSHN+RHEE beside the pelvis stick).
     """
     import networkx as nx
 
     edges: list[tuple[int, int]] = []
     verts: list[int] = []
     E = st.ends_per_stick
+    sizes = np.bincount(st.labels, minlength=st.n_sticks)
     for j in range(st.n_vertices):
         own = np.flatnonzero(st.vertex_of == j)
         k_of = {int(i // E): st.ends[i] for i in own}
@@ -259,10 +267,16 @@ def stick_edges(st: StickState, obs: Observations | None = None) -> tuple[list[t
             verts.append(j)
             continue
         g = nx.Graph()
-        for ia, a in enumerate(sticks):
-            for b in sticks[ia + 1:]:
-                _, res = joint_least_squares(st, [a, b], [k_of[a], k_of[b]])
-                g.add_edge(a, b, weight=res)
+        small = {a for a in sticks if sizes[a] < 2}
+        if len(small) == len(sticks):
+            small = set()
+        pairs = [(a, b) for ia, a in enumerate(sticks) for b in sticks[ia + 1:]]
+        res = [joint_least_squares(st, [a, b], [k_of[a], k_of[b]])[1] for a, b in pairs]
+        # An edge between two 1-point sticks weighs more than any other spanning tree: it is taken
+        # only where no other spanning tree exists.
+        extra = 1.0 + float(np.sum(res))
+        for (a, b), r in zip(pairs, res):
+            g.add_edge(a, b, weight=r + (extra if a in small and b in small else 0.0))
         for a, b in sorted(nx.minimum_spanning_tree(g).edges()):
             edges.append((min(a, b), max(a, b)))
             verts.append(j)
@@ -857,6 +871,7 @@ class Stage:
     reattached: list = field(default_factory=list)  # sub-tree moves kept (tree.reattach_subtrees)
     joined: list = field(default_factory=list)  # stick pairs joined to reach max_trees (tree.join_trees)
     bridged: list = field(default_factory=list)  # points made sticks between two sticks (bridge.bridge_points)
+    unpaired: list = field(default_factory=list)  # point pairs made two sticks (bridge.unpair_hubs)
 
 
 def _stage(st: StickState, obs: Observations, value: float, merged: tuple[int, int] | None, sweeps: int,
@@ -1060,6 +1075,18 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
         if joined:  # none when the forest has max_trees trees or fewer
             stages.append(_stage(cur, obs, val, None, n, ref))
             stages[-1].joined = joined
+            best[selection] = (getattr(stages[-1], selection), len(stages) - 1, cur.copy())
+    if settings.unpair:
+        # A 2-point stick that three sticks hang from (two limbs' one-marker segments lumped
+        # together, CMU's LTHI+RTHI) as two 1-point sticks (bridge.unpair_hubs).
+        from .bridge import unpair_hubs
+
+        _, at, cur = best[selection]
+        cur, val, n, pairs = unpair_hubs(cur.copy(), obs, priors, settings, rng, stages[at].objective,
+                                         lambda s, v: bic(s, obs, v) if selection == "bic" else v)
+        if pairs:
+            stages.append(_stage(cur, obs, val, None, n, ref))
+            stages[-1].unpaired = pairs
             best[selection] = (getattr(stages[-1], selection), len(stages) - 1, cur.copy())
     if settings.bridge_points:
         # A point that bends its stick (a thigh marker on the thorax) as a stick of its own between
