@@ -401,3 +401,31 @@ def test_articulated_split_candidates_are_the_same_in_halves(monkeypatch):
     assert [(s, g) for s, _, g in one] == [(s, g) for s, _, g in two]
     for (_, a, _), (_, b, _) in zip(one, two):
         np.testing.assert_array_equal(a, b)
+
+
+@linux
+def test_a_cancellation_swallowed_by_a_finalizer_is_raised_again(monkeypatch):
+    # Python reports an exception raised in a finalizer ("Exception ignored in: <Finalize
+    # object, dead>") and carries on; the child re-raises the cancellation by SIGALRM until it
+    # ends, and keeps the report of that one case off stderr.
+    import signal
+    from types import SimpleNamespace
+
+    from stickfigure.models.em import forked
+
+    seen = []
+    monkeypatch.setattr(forked.sys, "__unraisablehook__", seen.append)
+    forked._quiet_unraisable(SimpleNamespace(exc_value=forked._Cancelled()))
+    other = SimpleNamespace(exc_value=ValueError("x"))
+    forked._quiet_unraisable(other)
+    assert seen == [other]
+    old = signal.getsignal(signal.SIGALRM)
+    try:
+        with pytest.raises(forked._Cancelled):
+            forked._on_sigterm(signal.SIGTERM, None)
+        assert signal.getitimer(signal.ITIMER_REAL)[1] == pytest.approx(forked.CANCEL_RETRY_S)
+        forked._disarm()
+        assert signal.getitimer(signal.ITIMER_REAL) == (0.0, 0.0)
+    finally:
+        forked._disarm()
+        signal.signal(signal.SIGALRM, old)

@@ -58,8 +58,32 @@ class _Cancelled(BaseException):
     """Raised in a child when its parent cancels it (SIGTERM)."""
 
 
+#: Seconds after which a cancellation the child has not acted on is raised again (:func:`_on_sigterm`).
+CANCEL_RETRY_S = 0.2
+
+
 def _on_sigterm(signum: int, frame: Any) -> None:
+    """Raise :class:`_Cancelled` now, and again every ``CANCEL_RETRY_S`` (SIGALRM) until :func:`_child`
+    ends: Python swallows an exception raised inside a finalizer, a ``__del__`` or an after-fork
+    hook ("Exception ignored in: <Finalize object, dead>", seen when the signal came while
+    multiprocessing closed a pipe), and the child would run on as if never cancelled while its
+    parent waits to join it. (Timers are not inherited across fork; the parent is not affected.)"""
+    signal.signal(signal.SIGALRM, _on_sigterm)
+    signal.setitimer(signal.ITIMER_REAL, CANCEL_RETRY_S, CANCEL_RETRY_S)
     raise _Cancelled
+
+
+def _quiet_unraisable(unraisable: Any) -> None:
+    """``sys.unraisablehook`` of a child: a cancellation swallowed in a finalizer is raised again
+    (:func:`_on_sigterm`), so its "Exception ignored" report would only be noise."""
+    if not isinstance(unraisable.exc_value, _Cancelled):
+        sys.__unraisablehook__(unraisable)
+
+
+def _disarm() -> None:
+    """No more repeats of a cancellation (see :func:`_on_sigterm`)."""
+    signal.setitimer(signal.ITIMER_REAL, 0.0)
+    signal.signal(signal.SIGALRM, signal.SIG_IGN)
 
 
 def _child(conn: Any, reader: Any, job: Callable[[], Any], group: bool, gate: tuple | None = None) -> None:
@@ -89,6 +113,7 @@ def _child(conn: Any, reader: Any, job: Callable[[], Any], group: bool, gate: tu
     # SIGTERM arrives blocked (see _start); a cancellation that came before this point is
     # delivered at the unblocking, inside the ``try`` that handles it.
     signal.signal(signal.SIGTERM, _on_sigterm)
+    sys.unraisablehook = _quiet_unraisable
     try:
         try:
             signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})
@@ -101,6 +126,7 @@ def _child(conn: Any, reader: Any, job: Callable[[], Any], group: bool, gate: tu
     except (_Cancelled, BrokenPipeError):  # nobody waits for the result any more
         pass
     finally:
+        _disarm()
         conn.close()
         _stop_children()
 
@@ -116,6 +142,7 @@ def _stop_children() -> None:
     Further cancellations are ignored meanwhile, so this cleanup runs to its end.
     """
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    _disarm()
     for proc in multiprocessing.active_children():
         proc.terminate()
         proc.join()
