@@ -150,6 +150,50 @@ def _nearest_joints(st: StickState, obs: Observations, p: int, n: int) -> np.nda
     return joints[np.argsort(d / max(m.sum(), 1.0), kind="stable")[:n]]
 
 
+def _with_new_stick(cut: StickState, priors: Priors, point: int, like: int, ends: list,
+                    joined: list[int], local: np.ndarray | None = None) -> StickState:
+    """``cut`` plus a new stick (the last) holding ``point``, at stick ``like``'s motion.
+
+    ``ends``: the new stick's E endpoints in its local frame; the first ``len(joined)`` go
+    on the vertices ``joined``, the others on new free vertices, which start at their
+    endpoint's prediction (as in initial_state). ``local``: ``point``'s local
+    coordinates in the new stick (default: those it has).
+    """
+    from .refine import start_vertices
+
+    E = cut.ends_per_stick
+    F, D = cut.n_frames, cut.n_dims
+    S, J = cut.n_sticks, cut.n_vertices
+    n_free = E - len(joined)
+    out = cut.copy()
+    out.labels = cut.labels.copy()
+    out.labels[point] = S
+    out.local = cut.local.copy()
+    if local is not None:
+        out.local[point] = local
+    out.rot = np.concatenate([cut.rot, cut.rot[like:like + 1]])
+    out.trans = np.concatenate([cut.trans, cut.trans[like:like + 1]])
+    out.ends = np.concatenate([cut.ends, np.stack(ends)])
+    out.vertex_of = np.concatenate([cut.vertex_of, np.asarray(list(joined), np.int64), J + np.arange(n_free)])
+    out.mu_v = np.concatenate([cut.mu_v, np.zeros((n_free, F, D))])
+    out.tau_v = np.concatenate([cut.tau_v, np.ones((n_free, F))])
+    out.alpha = np.concatenate([cut.alpha, np.ones(n_free)])
+    out.beta = np.concatenate([cut.beta, np.ones(n_free)])
+    if cut.ghosts is not None:
+        g = cut.ghosts
+        z = Ghosts.empty(n_free, F, D)
+        out.ghosts = Ghosts(np.concatenate([g.n, z.n]), np.concatenate([g.sum, z.sum]),
+                            np.concatenate([g.sq, z.sq]), np.concatenate([g.var, z.var]))
+    out._design = None
+    out._quat = None
+    pred = out.end_predictions()
+    out.mu_e = np.concatenate([cut.mu_e, pred[-E:]])
+    out.tau_e = np.concatenate([cut.tau_e, np.ones(E)])
+    start_vertices(out, np.arange(J, J + n_free), pred, priors)  # the free ones, at their endpoint's prediction
+    update_endpoints(out)
+    return out
+
+
 def insert_bridge(st: StickState, obs: Observations, priors: Priors, settings, p: int, e: int,
                   rng: np.random.Generator, stop: Callable | None = None
                   ) -> tuple[StickState, float, int, dict] | None:
@@ -161,7 +205,6 @@ def insert_bridge(st: StickState, obs: Observations, priors: Priors, settings, p
     stick to the joint's other sticks.
     """
     from .assign import candidate_fits
-    from .refine import start_vertices
     from .structure import (
         apply_merge,
         merge_candidates,
@@ -171,43 +214,18 @@ def insert_bridge(st: StickState, obs: Observations, priors: Priors, settings, p
     from .tree import detach_endpoint
 
     E = st.ends_per_stick
-    F, D = st.n_frames, st.n_dims
     b = int(e // E)
     loc, _ = candidate_fits(st, obs, priors)
     cut = detach_endpoint(st, e, priors)
     ve = int(cut.vertex_of[e])
-    S, J = cut.n_sticks, cut.n_vertices
-    out = cut.copy()
-    out.labels = cut.labels.copy()
-    out.labels[p] = S
-    out.local = cut.local.copy()
+    S = cut.n_sticks
     lp = loc[p, b]  # p's best place in b's frame; the new stick starts at b's motion
-    out.local[p] = lp
-    out.rot = np.concatenate([cut.rot, cut.rot[b:b + 1]])
-    out.trans = np.concatenate([cut.trans, cut.trans[b:b + 1]])
     k0 = cut.ends[e]
     # One endpoint where b was jointed, the others beyond p from it (free, to be joined).
     # (Any number of endpoints: n_ends has no upper bound.)
     far = [lp + (lp - k0) / (i + 1) for i in range(min(E - 1, 2))]
     far += [lp + np.array([0.0, 0.0, 0.1 * i]) for i in range(1, E - 2)]
-    out.ends = np.concatenate([cut.ends, np.stack([k0] + far)])
-    out.vertex_of = np.concatenate([cut.vertex_of, [ve], J + np.arange(E - 1)])
-    out.mu_v = np.concatenate([cut.mu_v, np.zeros((E - 1, F, D))])
-    out.tau_v = np.concatenate([cut.tau_v, np.ones((E - 1, F))])
-    out.alpha = np.concatenate([cut.alpha, np.ones(E - 1)])
-    out.beta = np.concatenate([cut.beta, np.ones(E - 1)])
-    if cut.ghosts is not None:
-        g = cut.ghosts
-        z = Ghosts.empty(E - 1, F, D)
-        out.ghosts = Ghosts(np.concatenate([g.n, z.n]), np.concatenate([g.sum, z.sum]),
-                            np.concatenate([g.sq, z.sq]), np.concatenate([g.var, z.var]))
-    out._design = None
-    out._quat = None
-    pred = out.end_predictions()
-    out.mu_e = np.concatenate([cut.mu_e, pred[-E:]])
-    out.tau_e = np.concatenate([cut.tau_e, np.ones(E)])
-    start_vertices(out, np.arange(J, J + E - 1), pred, priors)  # the free ones, at their endpoint's prediction
-    update_endpoints(out)
+    out = _with_new_stick(cut, priors, p, b, [k0] + far, [ve], local=lp)
     # The new stick goes into the joint b left: merges of a free endpoint of it with the sticks
     # still on that joint (a 1-point stick's two joints constrain each other little, so a link
     # scored anywhere in the tree would go wherever a loose joint fits worst).
@@ -310,11 +328,9 @@ def split_pair(st: StickState, obs: Observations, priors: Priors, c: int) -> Sti
     free, beyond ``q`` from its first joint. The tree falls into two parts, which
     the caller joins again. None when one point is nearer every joint.
     """
-    from .refine import start_vertices
     from .tree import detach_endpoint
 
     E = st.ends_per_stick
-    F, D = st.n_frames, st.n_dims
     idx = np.flatnonzero(st.labels == c)
     if idx.size != 2:
         raise ValueError(f"stick {c} holds {idx.size} points; split_pair takes a stick of two")
@@ -328,35 +344,10 @@ def split_pair(st: StickState, obs: Observations, priors: Priors, c: int) -> Sti
     cut = st
     for e in moved:
         cut = detach_endpoint(cut, e, priors)
-    S, J = cut.n_sticks, cut.n_vertices
-    out = cut.copy()
-    out.labels = cut.labels.copy()
-    out.labels[q] = S
-    out.rot = np.concatenate([cut.rot, cut.rot[c:c + 1]])
-    out.trans = np.concatenate([cut.trans, cut.trans[c:c + 1]])
     lq = cut.local[q]
     k0 = cut.ends[moved[0]]
-    n_free = E - len(moved)
-    ends = [cut.ends[e] for e in moved] + [lq + (lq - k0) / (i + 1) for i in range(n_free)]
-    verts = [int(st.vertex_of[e]) for e in moved] + list(J + np.arange(n_free))
-    out.ends = np.concatenate([cut.ends, np.stack(ends)])
-    out.vertex_of = np.concatenate([cut.vertex_of, np.asarray(verts, np.int64)])
-    out.mu_v = np.concatenate([cut.mu_v, np.zeros((n_free, F, D))])
-    out.tau_v = np.concatenate([cut.tau_v, np.ones((n_free, F))])
-    out.alpha = np.concatenate([cut.alpha, np.ones(n_free)])
-    out.beta = np.concatenate([cut.beta, np.ones(n_free)])
-    if cut.ghosts is not None:
-        g = cut.ghosts
-        z = Ghosts.empty(n_free, F, D)
-        out.ghosts = Ghosts(np.concatenate([g.n, z.n]), np.concatenate([g.sum, z.sum]),
-                            np.concatenate([g.sq, z.sq]), np.concatenate([g.var, z.var]))
-    out._design = None
-    out._quat = None
-    pred = out.end_predictions()
-    out.mu_e = np.concatenate([cut.mu_e, pred[-E:]])
-    out.tau_e = np.concatenate([cut.tau_e, np.ones(E)])
-    start_vertices(out, np.arange(J, J + n_free), pred, priors)  # the free ones, at their endpoint's prediction
-    update_endpoints(out)
+    ends = [cut.ends[e] for e in moved] + [lq + (lq - k0) / (i + 1) for i in range(E - len(moved))]
+    out = _with_new_stick(cut, priors, q, c, ends, [int(st.vertex_of[e]) for e in moved])
     return out
 
 

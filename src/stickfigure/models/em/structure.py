@@ -993,13 +993,22 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
         report(done, st, stage.objective)
     if selection not in ("objective", "bic"):
         raise ValueError(f"selection must be 'objective' or 'bic', got {selection!r}")
+
+    def criterion(s: StickState, v: float) -> float:
+        return bic(s, obs, v) if selection == "bic" else v
+
+    def keep_stage(state: StickState, value: float, sweeps: int, name: str, record: list) -> None:
+        # A move after the search that changed something: its model is a stage of its own, selected
+        # whatever its criterion (the moves keep only what improves it, or are wanted anyway).
+        if record:
+            stages.append(_stage(state, obs, value, None, sweeps, ref))
+            setattr(stages[-1], name, record)
+            best[selection] = (getattr(stages[-1], selection), len(stages) - 1, state.copy())
+
     if settings.dissolve_points or settings.resplit:
         # Hartigan-style moves of groups of points and of whole small sticks on the selected stage
         # (docs/em.md section 6).
         from .refine import dissolve_small_sticks, resplit_pairs
-
-        def criterion(s: StickState, v: float) -> float:
-            return bic(s, obs, v) if selection == "bic" else v
 
         _, at, cur = best[selection]
         cur, val = cur.copy(), stages[at].objective
@@ -1072,22 +1081,15 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
         _, at, cur = best[selection]
         cur, val, n, joined = join_trees(cur.copy(), obs, priors, settings, rng, stages[at].objective,
                                          settings.max_trees)
-        if joined:  # none when the forest has max_trees trees or fewer
-            stages.append(_stage(cur, obs, val, None, n, ref))
-            stages[-1].joined = joined
-            best[selection] = (getattr(stages[-1], selection), len(stages) - 1, cur.copy())
+        keep_stage(cur, val, n, "joined", joined)  # none when the forest has max_trees trees or fewer
     if settings.unpair:
         # A 2-point stick that three sticks hang from (two limbs' one-marker segments lumped
         # together, CMU's LTHI+RTHI) as two 1-point sticks (bridge.unpair_hubs).
         from .bridge import unpair_hubs
 
         _, at, cur = best[selection]
-        cur, val, n, pairs = unpair_hubs(cur.copy(), obs, priors, settings, rng, stages[at].objective,
-                                         lambda s, v: bic(s, obs, v) if selection == "bic" else v)
-        if pairs:
-            stages.append(_stage(cur, obs, val, None, n, ref))
-            stages[-1].unpaired = pairs
-            best[selection] = (getattr(stages[-1], selection), len(stages) - 1, cur.copy())
+        cur, val, n, pairs = unpair_hubs(cur.copy(), obs, priors, settings, rng, stages[at].objective, criterion)
+        keep_stage(cur, val, n, "unpaired", pairs)
     if settings.bridge_points:
         # A point that bends its stick (a thigh marker on the thorax) as a stick of its own between
         # two jointed sticks (bridge.py); before the sub-tree moves, which can re-place its joints.
@@ -1095,12 +1097,8 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
 
         _, at, cur = best[selection]
         cur, val, n, bridged = bridge_points(cur.copy(), obs, priors, settings, rng, stages[at].objective,
-                                             lambda s, v: bic(s, obs, v) if selection == "bic" else v,
-                                             settings.bridge_points)
-        if bridged:
-            stages.append(_stage(cur, obs, val, None, n, ref))
-            stages[-1].bridged = bridged
-            best[selection] = (getattr(stages[-1], selection), len(stages) - 1, cur.copy())
+                                             criterion, settings.bridge_points)
+        keep_stage(cur, val, n, "bridged", bridged)
     if settings.reattach:
         # Sub-tree moves (tree.py): the greedy search never undoes a merge, and a contracted
         # stick links its two neighbours whatever they are; a part hanging from the wrong stick
@@ -1109,11 +1107,8 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
 
         _, at, cur = best[selection]
         cur, val, n, moves = reattach_subtrees(cur.copy(), obs, priors, settings, rng, stages[at].objective,
-                                               lambda s, v: bic(s, obs, v) if selection == "bic" else v)
-        if moves:
-            stages.append(_stage(cur, obs, val, None, n, ref))
-            stages[-1].reattached = moves
-            best[selection] = (getattr(stages[-1], selection), len(stages) - 1, cur.copy())
+                                               criterion)
+        keep_stage(cur, val, n, "reattached", moves)
     for crit in ("objective", "bic"):
         stages[best[crit][1]].state = best[crit][2]
     stages[best[selection][1]].search_bic = search_bic
