@@ -179,7 +179,7 @@ def test_affinity_propagation_segments_over_20_random_figures():
         labels = seg.affinity_propagation_segments(tr.xy, random_state=0)
         aris.append(adjusted_rand_score(tr.labels_true, labels))
         right.append(labels.max() + 1 == S)
-    # measured on other seeds: mean ARI 0.95, count right 90-93% (see docs/geometry.md)
+    # measured on figure seeds 9100-9119: mean ARI 0.964, count right 19 of 20 (docs/geometry.md section 6)
     assert np.mean(aris) > 0.92
     assert np.mean(right) >= 0.8
 

@@ -10,9 +10,10 @@
 * :func:`estimate_n_segments`, :func:`segment_misfit` — model selection helpers.
 
 Why the default affinity is :func:`stickfigure.geometry.rigid_affinity` and not
-the plain local subspace affinity: see ``docs/geometry.md`` (on random figures
-with 5-9 points per stick the angular neighbourhoods of the LSA straddle
-neighbouring parts half of the time, and ARI stays near 0.6).
+the plain local subspace affinity: see ``docs/geometry.md`` section 6 (on random
+figures with 5-9 points per stick the angular neighbourhoods of the LSA straddle
+neighbouring parts: mean ARI 0.625 with the count given, and its eigengap finds
+one part on every figure).
 """
 
 from __future__ import annotations
