@@ -608,6 +608,11 @@ def affinity_propagation_segments(
         Trajectories, NaN where missing.
     affinity : array_like, shape (P, P), optional
         Precomputed similarities (e.g. :func:`geometry.local_subspace_affinity`).
+        The count estimate (the eigengap) needs similarities near zero between
+        parts, as :func:`geometry.rigid_affinity`'s are. The local subspace
+        affinity stays above about exp(-4) everywhere, and its eigengap finds
+        one part on articulated figures (20 of 20 random figures, docs/geometry.md
+        section 6): give ``n_segments`` with it.
     preference : float, optional
         AP preference; bypasses the count estimate.
     n_segments : int, optional
