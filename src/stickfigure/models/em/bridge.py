@@ -142,12 +142,18 @@ def bridge_threshold(obs: Observations) -> float:
     return 0.25 * (3.0 * obs.n_frames + 9.0) * np.log(max(N, 2.0))
 
 
+def _vertex_distances(st: StickState, obs: Observations, vertices: np.ndarray, p: int) -> np.ndarray:
+    """Mean squared distance of each vertex's trajectory from point ``p``'s over ``p``'s observed
+    frames, shape (len(vertices),)."""
+    m = obs.mask[p]
+    d = np.sum(m[None, :] * np.sum((st.mu_v[vertices] - obs.w[p][None]) ** 2, axis=2), axis=1)
+    return d / max(m.sum(), 1.0)
+
+
 def _nearest_joints(st: StickState, obs: Observations, p: int, n: int) -> np.ndarray:
     """The ``n`` joints (vertices of two or more endpoints) whose trajectories are nearest point ``p``'s."""
     joints = np.flatnonzero(st.vertex_counts() >= 2)
-    m = obs.mask[p]
-    d = np.sum(m[None, :] * np.sum((st.mu_v[joints] - obs.w[p][None]) ** 2, axis=2), axis=1)
-    return joints[np.argsort(d / max(m.sum(), 1.0), kind="stable")[:n]]
+    return joints[np.argsort(_vertex_distances(st, obs, joints, p), kind="stable")[:n]]
 
 
 def _with_new_stick(cut: StickState, priors: Priors, point: int, like: int, ends: list,
@@ -311,12 +317,6 @@ def bridge_points(st: StickState, obs: Observations, priors: Priors, settings, r
 UNPAIR_MIN_JOINTS = 3
 
 
-def _rms_distance(st: StickState, obs: Observations, j: int, p: int) -> float:
-    """RMS distance of vertex ``j``'s trajectory from point ``p``'s over ``p``'s observed frames."""
-    m = obs.mask[p]
-    return float(np.sqrt(np.sum(m * np.sum((st.mu_v[j] - obs.w[p]) ** 2, axis=1)) / max(m.sum(), 1.0)))
-
-
 def split_pair(st: StickState, obs: Observations, priors: Priors, c: int) -> StickState | None:
     """Stick ``c`` of two points as two 1-point sticks, each on the joints nearer its point.
 
@@ -337,8 +337,8 @@ def split_pair(st: StickState, obs: Observations, priors: Priors, c: int) -> Sti
     p, q = (int(x) for x in idx)
     cnt = st.vertex_counts()
     jointed = [e for e in range(E * c, E * (c + 1)) if cnt[st.vertex_of[e]] >= 2]
-    moved = [e for e in jointed
-             if _rms_distance(st, obs, int(st.vertex_of[e]), q) < _rms_distance(st, obs, int(st.vertex_of[e]), p)]
+    to_p, to_q = (_vertex_distances(st, obs, st.vertex_of[jointed], x) for x in (p, q))
+    moved = [e for e, dp, dq in zip(jointed, to_p, to_q) if dq < dp]
     if not moved or len(moved) == len(jointed):
         return None
     cut = st
