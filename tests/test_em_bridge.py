@@ -222,6 +222,27 @@ def test_unpair_hubs_parts_two_lumped_one_marker_segments(seed):
     assert none == [] and same is new and v == val and n == 0
 
 
+def test_unpair_hubs_gives_the_same_model_in_one_process_or_two_and_spares_the_callers_stream():
+    # Its trials are greedy trials (trials.greedy_trials): each draws from a generator spawned
+    # from the caller's, so neither n_jobs nor the trials' own draws change what follows.
+    traj, st, value, obs, settings, priors = _lumped_hub(1)
+    settings = replace(settings, resample_every=10)  # so that a trial's EM run draws numbers
+
+    def crit(s, v):
+        return bic(s, obs, v)
+
+    rngs = [np.random.default_rng(1), np.random.default_rng(1)]
+    one = unpair_hubs(st, obs, priors, replace(settings, n_jobs=1), rngs[0], value, crit)
+    two = unpair_hubs(st, obs, priors, replace(settings, n_jobs=2), rngs[1], value, crit)
+    assert one[3] == two[3] and len(one[3]) == 1
+    assert one[1] == two[1] and one[2] == two[2]
+    np.testing.assert_array_equal(one[0].labels, two[0].labels)
+    np.testing.assert_array_equal(one[0].rot, two[0].rot)
+    fresh = np.random.default_rng(1).random(3)
+    np.testing.assert_array_equal(rngs[0].random(3), fresh)
+    np.testing.assert_array_equal(rngs[1].random(3), fresh)
+
+
 def test_split_pair_moves_each_joint_with_the_nearer_point():
     traj, st, value, obs, settings, priors = _lumped_hub(0)
     E = st.ends_per_stick

@@ -371,36 +371,53 @@ def unpair_hubs(st: StickState, obs: Observations, priors: Priors, settings, rng
     arm's LUPA+LELB) and is left alone: splitting those raised BIC too (by
     350-4100 on CMU 85_02, the vertex terms' bias of docs/em.md section 11) and
     only fragmented the segments.
+    The trials are greedy (:func:`.trials.greedy_trials`: each draws from its own
+    generator spawned from ``rng``; with ``settings.n_jobs`` > 1 the trial that
+    follows a loss runs beside the current one).
 
     Returns the state, its objective, the EM sweeps run and the point pairs split.
     """
     from .structure import components, run_em
     from .tree import join_trees
+    from .trials import greedy_trials
 
-    best = criterion(st, value)
+    cur = {"st": st, "value": value, "best": criterion(st, value)}
     kept: list[list[int]] = []
     sweeps = 0
-    tried: set[tuple[int, ...]] = set()
-    while True:
-        hubs = st.joints_per_stick() >= UNPAIR_MIN_JOINTS
-        sizes = np.bincount(st.labels, minlength=st.n_sticks)
-        todo = [c for c in range(st.n_sticks) if sizes[c] == 2 and hubs[c]
-                and tuple(np.flatnonzero(st.labels == c).tolist()) not in tried]
-        if not todo:
-            break
-        c = todo[0]
-        pts = tuple(np.flatnonzero(st.labels == c).tolist())
-        tried.add(pts)
-        new = split_pair(st, obs, priors, c)
+
+    def propose(tried: set) -> tuple[int, tuple[int, ...]] | None:
+        now = cur["st"]
+        hubs = now.joints_per_stick() >= UNPAIR_MIN_JOINTS
+        sizes = np.bincount(now.labels, minlength=now.n_sticks)
+        for c in np.flatnonzero((sizes == 2) & hubs):
+            pts = tuple(np.flatnonzero(now.labels == c).tolist())
+            if pts not in tried:  # a pair is named by its points, so that one that lost is not retried
+                tried.add(pts)
+                return int(c), pts
+        return None
+
+    def run(key: tuple[int, tuple[int, ...]], r: np.random.Generator) -> tuple[StickState, float, int] | None:
+        now = cur["st"]
+        new = split_pair(now, obs, priors, key[0])
         if new is None:
-            continue
-        trees = int(components(st)[0].max()) + 1
-        new, val, n = run_em(new, obs, priors, settings, settings.n_iter, rng)
-        sweeps += n
-        new, val, n, _ = join_trees(new, obs, priors, settings, rng, val, trees)
+            return None
+        trees = int(components(now)[0].max()) + 1
+        new, val, n = run_em(new, obs, priors, settings, settings.n_iter, r)
+        new, val, m, _ = join_trees(new, obs, priors, settings, r, val, trees)
+        return new, val, n + m
+
+    def judge(key: tuple[int, tuple[int, ...]], result: tuple[StickState, float, int] | None) -> bool:
+        nonlocal sweeps
+        if result is None:
+            return False
+        new, val, n = result
         sweeps += n
         score = criterion(new, val)
-        if score > best:
-            best, st, value = score, new, val
-            kept.append(list(pts))
-    return st, value, sweeps, kept
+        if score <= cur["best"]:
+            return False
+        cur.update(st=new, value=val, best=score)
+        kept.append(list(key[1]))
+        return True
+
+    greedy_trials(propose, run, judge, rng, parallel=settings.n_jobs > 1)
+    return cur["st"], cur["value"], sweeps, kept

@@ -3,10 +3,10 @@
 Some refinements of the structure search are greedy loops: propose a change of the
 current model, fit it (an EM run of up to ``n_iter`` sweeps), keep it when it wins,
 else propose the next (:func:`.refine.resplit_pairs`, :func:`.refine.dissolve_small_sticks`,
-:func:`.refine.heldout_dissolve`, :func:`.tree.reattach_subtrees`). Most trials lose,
-and they are costly: on the human-sized random figure seed 2 (one process) the held-out
-check's 12 trials, each run to the 200-sweep cap, took about 40 % of the search with
-their predictions.
+:func:`.refine.heldout_dissolve`, :func:`.bridge.unpair_hubs`, :func:`.tree.reattach_subtrees`).
+Most trials lose, and they are costly: on the human-sized random figure seed 2 (one
+process) the held-out check's 12 trials, each run to the 200-sweep cap, took about 40 %
+of the search with their predictions.
 A losing trial leaves the model as it was, and so the proposal that follows it. So
 while one trial runs here, the trial that follows if it loses runs in a forked child
 (:class:`.forked.Speculative`); when this one wins, the child is stopped and the next
