@@ -1007,3 +1007,41 @@ def test_leaves_scope_keeps_a_stick_between_two_joints(chain):
     assert _next_small_stick(state, np.array([middle]), 100, set(), "all")[0] == middle
     with pytest.raises(ValueError, match="scope"):
         _next_small_stick(state, order, 100, set(), "middle")
+
+
+def test_joint_support_measures_reach_and_gap_of_a_hand_built_joint():
+    from types import SimpleNamespace
+
+    from stickfigure.models.em.structure import joint_support
+
+    F = 6
+    rot = np.broadcast_to(np.array([[1.0, 0, 0], [0, 1.0, 0]]), (2, F, 2, 3)).copy()
+    # Stick 1's endpoint on the joint misses stick 0's by (0.3, 0.4) or (-0.3, -0.4): 0.5 in every frame.
+    miss = np.where(np.arange(F)[:, None] % 2 == 0, [0.3, 0.4], [-0.3, -0.4])
+    trans = np.stack([np.zeros((F, 2)), np.array([3.0, 0.5]) + miss])
+    st = SimpleNamespace(ends_per_stick=2, vertex_of=np.array([0, 1, 0, 2]), labels=np.array([0, 0, 1, 1]),
+                         local=np.array([[0.0, 0, 0], [1, 0, 0], [0, 0, 0], [0, 2, 0]]),
+                         ends=np.array([[3.0, 0, 0], [-1, 0, 0], [0, -0.5, 0], [0, 5, 0]]), rot=rot, trans=trans)
+    reach, gap = joint_support(st, [(0, 1)], [0])
+    np.testing.assert_allclose(reach, [[2.0, 0.5]])  # 3 - 1 on stick 0, 0.5 below stick 1's first point
+    np.testing.assert_allclose(gap, [0.5])
+
+
+def test_joint_support_of_a_recovered_chain(chain, fitted):
+    sk = fitted.skeleton_
+    js = sk.info["joint_support"]
+    assert js["edges"] == [list(e) for e in sk.edges]
+    reach, gap = np.asarray(js["reach"]), np.asarray(js["gap"])
+    assert reach.shape == (len(sk.edges), 2) and gap.shape == (len(sk.edges),)
+    # A true joint: the sticks meet to within the noise.
+    assert np.all(gap < 5 * chain.meta["noise_std"])
+    assert 0 < js["figure_radius"] < np.inf
+    # The true joint's image distance to a stick's nearest point is at most its 3D distance (orthographic), and
+    # as the stick turns it comes near it: the largest over frames is the reach, up to noise.
+    names = _edges_map(sk, chain)
+    for (a, b), r in zip(sk.edges, reach):
+        te = tuple(sorted((names[a], names[b])))
+        J = chain.joints_true[[i for i, t in enumerate(chain.edges_true) if tuple(sorted(t)) == te][0]]
+        for s, rs in zip((a, b), r):
+            image = np.min(np.linalg.norm(chain.xy[sk.labels == s] - J[None], axis=-1), axis=0).max()
+            assert 0.8 * image < rs < 1.2 * image

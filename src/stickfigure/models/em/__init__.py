@@ -35,7 +35,7 @@ from .initialise import fill_gaps, initial_state
 from .model import Observations, Priors, StickState, normalise
 from .refine import misfit_ratios
 from .structure import (EMSettings, Stage, bic, child_rng, extend_frames, learn_structure, run_em,
-                        search_frames, stick_edges)
+                        joint_support, search_frames, stick_edges)
 
 __all__ = ["EMSkeleton", "fit_stages"]
 
@@ -690,6 +690,7 @@ def _skeleton(stages: list[Stage], selected: int, norm: tuple[np.ndarray, float]
         "objective_stage": int(np.argmax([s.objective for s in stages])),
         "bic_stage": int(np.argmax([s.bic for s in stages])),
         "precisions": {"tau_w": st.tau_w, "tau_m": st.tau_m, "tau_t": st.tau_t},
+        "joint_support": _joint_support_info(st, edges, verts, scale, traj.xy),
         "units": "objective in normalised units (data centred, scaled to unit RMS spread)",
     })
     state = {
@@ -707,6 +708,25 @@ def _skeleton(stages: list[Stage], selected: int, norm: tuple[np.ndarray, float]
                     log_likelihood=info0.get("refit", {}).get("objective", stages[selected].objective), n_dims=D,
                     state=state,
                     info=info)
+
+
+def _joint_support_info(st: StickState, edges: list[tuple[int, int]], verts: list[int], scale: float,
+                        xy: np.ndarray) -> dict[str, Any]:
+    """``info["joint_support"]``: :func:`structure.joint_support` in data units, with the figure's size.
+
+    ``figure_radius`` is the median over frames of the RMS distance of the visible
+    points from their centroid, a scale to read ``reach`` against.
+    """
+    reach, gap = joint_support(st, edges, verts)
+    seen = ~np.isnan(xy[..., 0])  # (P, F)
+    n = seen.sum(axis=0)
+    ok = n > 0
+    w = np.where(seen[..., None], xy, 0.0)[:, ok]
+    centroid = w.sum(axis=0) / n[ok, None]
+    sq = np.where(seen[:, ok], np.sum((w - centroid) ** 2, axis=-1), 0.0).sum(axis=0) / n[ok]
+    radius = float(np.median(np.sqrt(sq))) if ok.any() else float("nan")
+    return {"edges": [list(e) for e in edges], "reach": (reach * scale).tolist(), "gap": (gap * scale).tolist(),
+            "figure_radius": radius}
 
 
 def _impute_state(skeleton: Skeleton, traj: Trajectories) -> tuple[StickState, Observations, tuple]:

@@ -283,6 +283,46 @@ def stick_edges(st: StickState, obs: Observations | None = None) -> tuple[list[t
     return edges, verts
 
 
+def joint_support(st: StickState, edges: list[tuple[int, int]], verts: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """How far each joint sits from its sticks' points, and how well the sticks meet there.
+
+    A joint of an articulated body lies at the end of the segments it joins, near
+    the points on at least one of them. One far from the points of both sticks is
+    a joint in mid-air (docs/em.md section 9): on CMU takes the links between the
+    two legs were of this kind, and no anatomical joint was.
+
+    Parameters
+    ----------
+    st : StickState
+    edges : list of (int, int)
+        Stick pairs, as :func:`stick_edges` returns them.
+    verts : list of int
+        The vertex of each edge.
+
+    Returns
+    -------
+    reach : ndarray, shape (n_edges, 2)
+        For each of the edge's two sticks, the distance from its endpoint on the
+        joint to the nearest of its points, in the stick's 3D local frame.
+    gap : ndarray, shape (n_edges,)
+        Root mean square over frames of the distance between the two sticks'
+        predicted endpoints on the joint (0: the sticks meet exactly).
+    """
+    E = st.ends_per_stick
+    reach = np.zeros((len(edges), 2))
+    gap = np.zeros(len(edges))
+    for row, ((a, b), j) in enumerate(zip(edges, verts)):
+        ends = []
+        for col, s in enumerate((a, b)):
+            own = s * E + np.arange(E)
+            e = int(own[st.vertex_of[own] == j][0])
+            ends.append(e)
+            reach[row, col] = float(np.min(np.linalg.norm(st.local[st.labels == s] - st.ends[e], axis=1)))
+        pred = [st.rot[e // E] @ st.ends[e] + st.trans[e // E] for e in ends]  # (F, D) each
+        gap[row] = float(np.sqrt(np.mean(np.sum((pred[0] - pred[1]) ** 2, axis=-1))))
+    return reach, gap
+
+
 def pair_stats(st: StickState, sticks: Any = None, weights: np.ndarray | None = None
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Frame sums ``sum_f w_f R_a^T R_b`` (n, n, 3, 3), ``sum_f w_f R_a^T t_b`` (n, n, 3), ``sum_f w_f t_a . t_b``."""
