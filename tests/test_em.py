@@ -1045,3 +1045,49 @@ def test_joint_support_of_a_recovered_chain(chain, fitted):
         for s, rs in zip((a, b), r):
             image = np.min(np.linalg.norm(chain.xy[sk.labels == s] - J[None], axis=-1), axis=0).max()
             assert 0.8 * image < rs < 1.2 * image
+
+
+def test_joint_support_leaves_a_stick_without_points_out():
+    from types import SimpleNamespace
+
+    from stickfigure.models.em import mid_air
+    from stickfigure.models.em.structure import joint_support
+
+    F = 4
+    rot = np.broadcast_to(np.array([[1.0, 0, 0], [0, 1.0, 0]]), (2, F, 2, 3)).copy()
+    st = SimpleNamespace(ends_per_stick=2, vertex_of=np.array([0, 1, 0, 2]), labels=np.array([0, 0]),
+                         local=np.array([[0.0, 0, 0], [1, 0, 0]]),
+                         ends=np.array([[3.0, 0, 0], [-1, 0, 0], [0, 0, 0], [0, 1, 0]]), rot=rot,
+                         trans=np.zeros((2, F, 2)))
+    reach, gap = joint_support(st, [(0, 1)], [0])
+    assert reach[0, 0] == pytest.approx(2.0) and np.isnan(reach[0, 1])
+    js = {"reach": reach.tolist() + [[1.0, 3.0]], "gap": gap.tolist() + [0.0], "figure_radius": 4.0}
+    # The joint of the stick without points is not judged; the other joint is 1.0 from its nearer stick.
+    assert mid_air(SimpleNamespace(info={"joint_support": js})) == pytest.approx(0.25)
+
+
+@pytest.mark.parametrize("bad", [0, -1.0, True, "far", float("nan")])
+def test_retry_mid_air_must_be_a_positive_number(chain, bad):
+    with pytest.raises(ValueError, match="retry_mid_air"):
+        EMSkeleton(retry_mid_air=bad, labels=chain.labels_true, n_iter=5).fit(chain)
+
+
+def test_retry_mid_air_searches_again_and_keeps_the_skeleton_with_the_nearer_joints(chain):
+    from stickfigure.models.em import mid_air
+
+    kw = dict(random_state=0, labels=chain.labels_true, n_iter=60)
+    plain = EMSkeleton(**kw).fit(chain).skeleton_  # off by default
+    assert "retry" not in plain.info
+    sk = EMSkeleton(retry_mid_air=1e-9, **kw).fit(chain).skeleton_  # every joint is beyond that
+    retry = sk.info["retry"]
+    assert retry["n_ends"] == [3, 4] and retry["mid_air"][0] == pytest.approx(mid_air(plain))
+    kept = 0 if retry["kept"] == "first" else 1
+    assert retry["mid_air"][kept] == min(retry["mid_air"]) and retry["mid_air"][kept] == pytest.approx(mid_air(sk))
+    assert np.asarray(sk.state["ends"]).shape == (sk.n_sticks * retry["n_ends"][kept], 3)
+    if kept == 0:  # the first search is the one a fit without the retry makes
+        np.testing.assert_array_equal(sk.labels, plain.labels)
+        np.testing.assert_allclose(sk.local, plain.local)
+    # A threshold no joint reaches: no second search, the plain skeleton.
+    far = EMSkeleton(retry_mid_air=1e9, **kw).fit(chain).skeleton_
+    assert "retry" not in far.info
+    np.testing.assert_allclose(far.local, plain.local)

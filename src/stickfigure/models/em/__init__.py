@@ -37,7 +37,7 @@ from .refine import misfit_ratios
 from .structure import (EMSettings, Stage, bic, child_rng, extend_frames, learn_structure, run_em,
                         joint_support, search_frames, stick_edges)
 
-__all__ = ["EMSkeleton", "fit_stages"]
+__all__ = ["EMSkeleton", "fit_stages", "mid_air"]
 
 
 @register("em")
@@ -221,6 +221,19 @@ class EMSkeleton(StickEstimator):
         (``traj.meta["n_figures"]``: 1 for a motion-capture take of one subject,
         the tracks of a SLEAP file; :mod:`stickfigure.io`), else None. None: the
         forest as selected.
+    retry_mid_air : float or None
+        When the selected skeleton has a joint in mid-air, farther than this many
+        figure radii from the points of both sticks it joins (the smaller
+        ``reach`` of ``info["joint_support"]``), the whole search runs again with
+        one more endpoint per stick, and of the two skeletons the one whose
+        farthest joint is nearer its sticks is kept (``info["retry"]``). Such a
+        joint is a part hung where it has no place: on CMU takes a leg whose thigh
+        marker went to another part hangs on the other leg. With one more endpoint
+        the search takes another path (docs/em.md section 6). A search costs
+        twice as much when it retries. Default None (off): on CMU at 0.5 it
+        gained two body trees and lost one on the 11 cameras it was run on, and
+        anatomical joints can be beyond 0.5 radii (two CMU body trees at 0.52
+        and 0.59, the synthetic chain of the tests at 0.55).
     max_frames : int, optional
         Run the structure search (EM, stick checks, merges) on at most this many
         evenly spaced frames, then re-fit the selected structure on all frames
@@ -283,7 +296,7 @@ class EMSkeleton(StickEstimator):
                  dissolve_scope: str = "all",
                  remerge: bool = True, split_dissolved: int = 4,
                  unpair: bool = True, bridge_points: int = 2, reattach: bool = True,
-                 max_trees: int | str | None = "auto",
+                 max_trees: int | str | None = "auto", retry_mid_air: float | None = None,
                  max_frames: int | None = 400, oversegment: float | None = 3.5, n_jobs: int | None = None,
                  tau_p: float = 25.0,
                  alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e6, impute_iter: int = 100,
@@ -322,6 +335,7 @@ class EMSkeleton(StickEstimator):
         self.bridge_points = bridge_points
         self.reattach = reattach
         self.max_trees = max_trees
+        self.retry_mid_air = retry_mid_air
         self.max_frames = max_frames
         self.oversegment = oversegment
         self.n_jobs = n_jobs
@@ -369,6 +383,11 @@ class EMSkeleton(StickEstimator):
             raise ValueError(f"max_trees must be a positive integer, 'auto' or None, got {self.max_trees!r}")
         if self.max_trees is not None and self.max_trees != "auto":
             check_positive(self.max_trees, "max_trees", integer=True)
+        if self.retry_mid_air is not None and not (isinstance(self.retry_mid_air, (int, float, np.number))
+                                                   and not isinstance(self.retry_mid_air, bool)
+                                                   and np.isfinite(self.retry_mid_air) and self.retry_mid_air > 0):
+            raise ValueError(f"retry_mid_air must be None or a positive number of figure radii, "
+                             f"got {self.retry_mid_air!r}")
         for name in ("max_candidates", "max_merges", "max_sticks", "max_frames", "n_jobs"):
             v = getattr(self, name)
             if v is not None:
@@ -412,9 +431,26 @@ class EMSkeleton(StickEstimator):
             n = traj.meta.get("n_figures")
             if isinstance(n, (int, np.integer)) and not isinstance(n, bool) and n >= 1:
                 settings = replace(settings, max_trees=int(n))
+        skeleton = self._search(traj, settings, priors, rng)
+        if self.retry_mid_air is None:
+            return skeleton
+        first = mid_air(skeleton)
+        if first <= self.retry_mid_air:
+            return skeleton
+        more = replace(settings, n_ends=settings.n_ends + 1)
+        # Spawned after the first search, whose generators are then the same as without the retry.
+        second = self._search(traj, more, priors, child_rng(rng))
+        reach = mid_air(second)
+        kept = second if reach < first else skeleton
+        kept.info["retry"] = {"mid_air": [first, reach], "n_ends": [settings.n_ends, more.n_ends],
+                              "kept": "second" if kept is second else "first"}
+        return kept
+
+    def _search(self, traj: Trajectories, settings: EMSettings, priors: Priors,
+                rng: np.random.Generator) -> Skeleton:
         stages, selected, norm, info0 = fit_stages(traj, settings, priors, rng, labels=self.labels,
                                                    max_sticks=self.max_sticks, selection=self.selection,
-                                                   endpoint_init=self.endpoint_init, n_ends=int(self.n_ends),
+                                                   endpoint_init=self.endpoint_init, n_ends=settings.n_ends,
                                                    progress=self.progress, max_frames=self.max_frames,
                                                    oversegment=self.oversegment, n_jobs=self.n_jobs)
         return _skeleton(stages, selected, norm, info0, self.selection, traj)
@@ -727,6 +763,22 @@ def _joint_support_info(st: StickState, edges: list[tuple[int, int]], verts: lis
     radius = float(np.median(np.sqrt(sq))) if ok.any() else float("nan")
     return {"edges": [list(e) for e in edges], "reach": (reach * scale).tolist(), "gap": (gap * scale).tolist(),
             "figure_radius": radius}
+
+
+def mid_air(skeleton: Skeleton) -> float:
+    """The farthest joint from its sticks: the largest over edges of the smaller ``reach``, in figure radii.
+
+    0 for a skeleton without joints (``info["joint_support"]``, :func:`structure.joint_support`).
+    A joint of a stick without points (reach NaN) is left out: such a stick is a segment
+    no point shows, and its joints lie wherever that segment ends (CMU 85_02 at camera
+    30000/7: a body tree whose one such joint was 1.06 radii from the other stick's points).
+    """
+    js = skeleton.info["joint_support"]
+    reach = np.asarray(js["reach"], float).reshape(-1, 2)
+    reach = reach[~np.isnan(reach).any(axis=1)]
+    if reach.size == 0 or not np.isfinite(js["figure_radius"]) or js["figure_radius"] <= 0:
+        return 0.0
+    return float(reach.min(axis=1).max() / js["figure_radius"])
 
 
 def _impute_state(skeleton: Skeleton, traj: Trajectories) -> tuple[StickState, Observations, tuple]:

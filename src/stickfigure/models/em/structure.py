@@ -303,7 +303,8 @@ def joint_support(st: StickState, edges: list[tuple[int, int]], verts: list[int]
     -------
     reach : ndarray, shape (n_edges, 2)
         For each of the edge's two sticks, the distance from its endpoint on the
-        joint to the nearest of its points, in the stick's 3D local frame.
+        joint to the nearest of its points, in the stick's 3D local frame; NaN
+        for a stick without points.
     gap : ndarray, shape (n_edges,)
         Root mean square over frames of the distance between the two sticks'
         predicted endpoints on the joint (0: the sticks meet exactly).
@@ -317,7 +318,10 @@ def joint_support(st: StickState, edges: list[tuple[int, int]], verts: list[int]
             own = s * E + np.arange(E)
             e = int(own[st.vertex_of[own] == j][0])
             ends.append(e)
-            reach[row, col] = float(np.min(np.linalg.norm(st.local[st.labels == s] - st.ends[e], axis=1)))
+            own_points = st.local[st.labels == s]
+            # A stick can be left without points (its last one resampled away): no reach then.
+            reach[row, col] = (float(np.min(np.linalg.norm(own_points - st.ends[e], axis=1))) if len(own_points)
+                               else np.nan)
         pred = [st.rot[e // E] @ st.ends[e] + st.trans[e // E] for e in ends]  # (F, D) each
         gap[row] = float(np.sqrt(np.mean(np.sum((pred[0] - pred[1]) ** 2, axis=-1))))
     return reach, gap
