@@ -288,8 +288,9 @@ def joint_support(st: StickState, edges: list[tuple[int, int]], verts: list[int]
 
     A joint of an articulated body lies at the end of the segments it joins, near
     the points on at least one of them. One far from the points of both sticks is
-    a joint in mid-air (docs/em.md section 9): on CMU takes the links between the
-    two legs were of this kind, and no anatomical joint was.
+    a joint in mid-air (docs/em.md section 9): on CMU takes the wrong links between
+    the two legs are of this kind. How far is too far depends on the figure
+    (section 11), so this measures and does not judge.
 
     Parameters
     ----------
