@@ -1009,9 +1009,18 @@ def test_leaves_scope_keeps_a_stick_between_two_joints(chain):
         _next_small_stick(state, order, 100, set(), "middle")
 
 
-def test_joint_support_measures_reach_and_gap_of_a_hand_built_joint():
-    from types import SimpleNamespace
+def _bare_state(labels, local, ends, vertex_of, rot, trans):
+    """A StickState with the variables joint_support reads; the rest are zeros."""
+    from stickfigure.models.em.model import StickState
 
+    J, (_, F, D) = int(np.max(vertex_of)) + 1, trans.shape
+    zeros = np.zeros
+    return StickState(labels=labels, vertex_of=vertex_of, rot=rot, trans=trans, local=local, ends=ends,
+                      mu_e=zeros((len(ends), F, D)), tau_e=zeros(len(ends)), mu_v=zeros((J, F, D)),
+                      tau_v=zeros((J, F)), alpha=zeros(J), beta=zeros(J), tau_w=1.0, tau_m=1.0, tau_t=1.0)
+
+
+def test_joint_support_measures_reach_and_gap_of_a_hand_built_joint():
     from stickfigure.models.em.structure import joint_support
 
     F = 6
@@ -1019,9 +1028,9 @@ def test_joint_support_measures_reach_and_gap_of_a_hand_built_joint():
     # Stick 1's endpoint on the joint misses stick 0's by (0.3, 0.4) or (-0.3, -0.4): 0.5 in every frame.
     miss = np.where(np.arange(F)[:, None] % 2 == 0, [0.3, 0.4], [-0.3, -0.4])
     trans = np.stack([np.zeros((F, 2)), np.array([3.0, 0.5]) + miss])
-    st = SimpleNamespace(ends_per_stick=2, vertex_of=np.array([0, 1, 0, 2]), labels=np.array([0, 0, 1, 1]),
-                         local=np.array([[0.0, 0, 0], [1, 0, 0], [0, 0, 0], [0, 2, 0]]),
-                         ends=np.array([[3.0, 0, 0], [-1, 0, 0], [0, -0.5, 0], [0, 5, 0]]), rot=rot, trans=trans)
+    st = _bare_state(vertex_of=np.array([0, 1, 0, 2]), labels=np.array([0, 0, 1, 1]),
+                     local=np.array([[0.0, 0, 0], [1, 0, 0], [0, 0, 0], [0, 2, 0]]),
+                     ends=np.array([[3.0, 0, 0], [-1, 0, 0], [0, -0.5, 0], [0, 5, 0]]), rot=rot, trans=trans)
     reach, gap = joint_support(st, [(0, 1)], [0])
     np.testing.assert_allclose(reach, [[2.0, 0.5]])  # 3 - 1 on stick 0, 0.5 below stick 1's first point
     np.testing.assert_allclose(gap, [0.5])
@@ -1055,10 +1064,9 @@ def test_joint_support_leaves_a_stick_without_points_out():
 
     F = 4
     rot = np.broadcast_to(np.array([[1.0, 0, 0], [0, 1.0, 0]]), (2, F, 2, 3)).copy()
-    st = SimpleNamespace(ends_per_stick=2, vertex_of=np.array([0, 1, 0, 2]), labels=np.array([0, 0]),
-                         local=np.array([[0.0, 0, 0], [1, 0, 0]]),
-                         ends=np.array([[3.0, 0, 0], [-1, 0, 0], [0, 0, 0], [0, 1, 0]]), rot=rot,
-                         trans=np.zeros((2, F, 2)))
+    st = _bare_state(vertex_of=np.array([0, 1, 0, 2]), labels=np.array([0, 0]),
+                     local=np.array([[0.0, 0, 0], [1, 0, 0]]),
+                     ends=np.array([[3.0, 0, 0], [-1, 0, 0], [0, 0, 0], [0, 1, 0]]), rot=rot, trans=np.zeros((2, F, 2)))
     reach, gap = joint_support(st, [(0, 1)], [0])
     assert reach[0, 0] == pytest.approx(2.0) and np.isnan(reach[0, 1])
     js = {"reach": reach.tolist() + [[1.0, 3.0]], "gap": gap.tolist() + [0.0], "figure_radius": 4.0}

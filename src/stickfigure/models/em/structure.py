@@ -313,6 +313,7 @@ def joint_support(st: StickState, edges: list[tuple[int, int]], verts: list[int]
     E = st.ends_per_stick
     reach = np.zeros((len(edges), 2))
     gap = np.zeros(len(edges))
+    pred = st.end_predictions()  # (ES, F, D)
     for row, ((a, b), j) in enumerate(zip(edges, verts)):
         ends = []
         for col, s in enumerate((a, b)):
@@ -323,8 +324,7 @@ def joint_support(st: StickState, edges: list[tuple[int, int]], verts: list[int]
             # A stick can be left without points (its last one resampled away): no reach then.
             reach[row, col] = (float(np.min(np.linalg.norm(own_points - st.ends[e], axis=1))) if len(own_points)
                                else np.nan)
-        pred = [st.rot[e // E] @ st.ends[e] + st.trans[e // E] for e in ends]  # (F, D) each
-        gap[row] = float(np.sqrt(np.mean(np.sum((pred[0] - pred[1]) ** 2, axis=-1))))
+        gap[row] = float(np.sqrt(np.mean(np.sum((pred[ends[0]] - pred[ends[1]]) ** 2, axis=-1))))
     return reach, gap
 
 
