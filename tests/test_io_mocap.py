@@ -356,6 +356,115 @@ def test_bvh_virtual_markers(data_dir):
     assert not np.allclose(t.xy, load(path, markers_per_bone=3, random_state=1).xy)
 
 
+# MotionBuilder names (the widely shared CMU conversion): joint, parent, OFFSET, end site OFFSET.
+_MB_JOINTS = [
+    ("Hips", None, (0, 0, 0), None),
+    ("LeftUpLeg", "Hips", (1.2, -1.6, 0.6), None), ("LeftLeg", "LeftUpLeg", (0.5, -7.0, 0), None),
+    ("LeftFoot", "LeftLeg", (0.3, -6.6, 0), None), ("LeftToeBase", "LeftFoot", (0, -0.4, 2.2), (0, 0, 1.1)),
+    ("RightUpLeg", "Hips", (-1.2, -1.6, 0.6), None), ("RightLeg", "RightUpLeg", (-0.5, -7.0, 0), None),
+    ("RightFoot", "RightLeg", (-0.3, -6.6, 0), None), ("RightToeBase", "RightFoot", (0, -0.4, 2.2), (0, 0, 1.1)),
+    ("Spine", "Hips", (0, 2.0, 0), None), ("Spine1", "Spine", (0, 2.0, 0), None),
+    ("Neck", "Spine1", (0, 1.6, 0.1), None), ("Head", "Neck", (0, 1.6, 0), (0, 1.6, 0)),
+    ("LeftShoulder", "Spine1", (0.2, 1.2, 0), None), ("LeftArm", "LeftShoulder", (2.8, 0.3, 0), None),
+    ("LeftForeArm", "LeftArm", (0, -4.3, 0), None), ("LeftHand", "LeftForeArm", (0, -3.3, 0), (0, -1.2, 0)),
+    ("RightShoulder", "Spine1", (-0.2, 1.2, 0), None), ("RightArm", "RightShoulder", (-2.8, 0.3, 0), None),
+    ("RightForeArm", "RightArm", (0, -4.3, 0), None), ("RightHand", "RightForeArm", (0, -3.3, 0), (0, -1.2, 0)),
+]
+
+
+def _write_mb_bvh(path, F=9, seed=0):
+    """A CMU-named BVH (MotionBuilder names) with random poses."""
+    def block(name, depth):
+        joint, parent, off, end = next(j for j in _MB_JOINTS if j[0] == name)
+        pad = "  " * depth
+        kind = "ROOT" if parent is None else "JOINT"
+        chans = ("CHANNELS 6 Xposition Yposition Zposition Zrotation Yrotation Xrotation" if parent is None
+                 else "CHANNELS 3 Zrotation Yrotation Xrotation")
+        out = [f"{pad}{kind} {name}", f"{pad}{{", f"{pad}  OFFSET {off[0]} {off[1]} {off[2]}", f"{pad}  {chans}"]
+        for child in (j[0] for j in _MB_JOINTS if j[1] == name):
+            out += block(child, depth + 1)
+        if end is not None:
+            out += [f"{pad}  End Site", f"{pad}  {{", f"{pad}    OFFSET {end[0]} {end[1]} {end[2]}", f"{pad}  }}"]
+        return out + [f"{pad}}}"]
+
+    rng = np.random.default_rng(seed)
+    motion = rng.uniform(-40, 40, size=(F, 3 + 3 * len(_MB_JOINTS)))
+    rows = "\n".join(" ".join(f"{v:.6f}" for v in r) for r in motion)
+    path.write_text("HIERARCHY\n" + "\n".join(block("Hips", 0)) + f"\nMOTION\nFrames: {F}\nFrame Time: 0.01\n"
+                    + rows + "\n")
+
+
+# marker -> its bone's two joints (MotionBuilder names; pelvis markers: the hips and the spine's base)
+_MB_BONE_OF = {"FHD": ("Head", "Head_End"), "BHD": ("Head", "Head_End"), "UPA": ("Arm", "ForeArm"),
+               "ELB": ("Arm", "ForeArm"), "FRM": ("ForeArm", "Hand"), "WRA": ("ForeArm", "Hand"),
+               "WRB": ("ForeArm", "Hand"), "FIN": ("Hand", "Hand_End"), "THI": ("UpLeg", "Leg"),
+               "KNE": ("UpLeg", "Leg"), "SHN": ("Leg", "Foot"), "ANK": ("Leg", "Foot"),
+               "HEE": ("Foot", "ToeBase"), "TOE": ("Foot", "ToeBase"), "MT5": ("Foot", "ToeBase"),
+               "SHO": ("Shoulder", "Arm")}
+
+
+def test_bvh_cmu41_marker_set_rides_its_bones(tmp_path):
+    """Known answer: every marker keeps its distances to its bone's two joints, and sits on the named side."""
+    _write_mb_bvh(tmp_path / "mb.bvh")
+    t = load(tmp_path / "mb.bvh", marker_set="cmu41")
+    joints = load(tmp_path / "mb.bvh")
+    J = dict(zip(joints.names, joints.xy))
+    assert t.n_points == 41 and len(set(t.names)) == 41 and t.meta["marker_set"] == "cmu41"
+    labels, parts, edges, _ = segment_ground_truth(t.names)
+    assert parts == list(SEGMENTS) and t.part_names == parts and t.edges_true == edges
+    np.testing.assert_array_equal(t.labels_true, labels)
+    thigh = np.linalg.norm(J["LeftLeg"][0] - J["LeftUpLeg"][0])
+    for name, x in zip(t.names, t.xy):
+        side, base = (name[0], name[1:]) if name[1:] in _MB_BONE_OF else ("", name)
+        if base in _MB_BONE_OF:
+            a, b = _MB_BONE_OF[base]
+            side = {"L": "Left", "R": "Right"}[side]
+            a = a if a == "Head" else side + a
+            b = b if b == "Head_End" else side + b
+        elif base in ("FWT", "BWT") or name in ("LFWT", "RFWT", "LBWT", "RBWT"):
+            a, b = "LeftUpLeg", "Spine"
+        else:  # the thorax's central markers ride Spine1 (or Spine for T10)
+            a, b = ("Spine", "Spine1") if name == "T10" else ("Spine1", "Neck")
+        for j in (a, b):
+            d = np.linalg.norm(x - J[j], axis=-1)
+            assert np.ptp(d) < 1e-9 * thigh, (name, j)
+    x = dict(zip(t.names, t.xy[:, 0]))
+    # the knee marker: 0.12 thigh lengths from the knee, on the bone's end (the table's offset)
+    np.testing.assert_allclose(np.linalg.norm(x["LKNE"] - J["LeftLeg"][0]), 0.12 * thigh, rtol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(x["RKNE"] - J["RightLeg"][0]), 0.12 * thigh, rtol=1e-9)
+    # mirrored: each left marker is as far from its side's joint as the right one from its own
+    np.testing.assert_allclose(np.linalg.norm(x["LTHI"] - J["LeftUpLeg"][0]),
+                               np.linalg.norm(x["RTHI"] - J["RightUpLeg"][0]), rtol=1e-9)
+
+
+def test_bvh_marker_set_errors(tmp_path):
+    _write_mb_bvh(tmp_path / "mb.bvh", F=2)
+    with pytest.raises(ValueError, match="marker_set must be one of 'cmu41'"):
+        load(tmp_path / "mb.bvh", marker_set="plug-in-gait")
+    with pytest.raises(ValueError, match="not both"):
+        load(tmp_path / "mb.bvh", marker_set="cmu41", markers_per_bone=3)
+    _write_bvh(tmp_path / "abc.bvh", F=2)
+    with pytest.raises(ValueError, match="needs CMU joint names; no bone for the thigh"):
+        load(tmp_path / "abc.bvh", marker_set="cmu41")
+
+
+@pytest.mark.data
+def test_bvh_cmu41_marker_set_matches_the_cmu_take(data_dir):
+    """131_01 with the 41 markers: the recorded CMU take's names, segments and body tree; rigid per bone."""
+    t = load(data_dir / "mocap" / "131_01.bvh", marker_set="cmu41")
+    take = load(data_dir / "mocap" / "85_02.c3d")
+    assert sorted(t.names) == sorted(take.names)
+    assert t.part_names == take.part_names and t.edges_true == take.edges_true
+    by_name = dict(zip(take.names, take.labels_true))
+    assert [by_name[n] for n in t.names] == list(t.labels_true)
+    x = dict(zip(t.names, t.xy))
+    for a, b in (("LFHD", "RBHD"), ("LTHI", "LKNE"), ("RSHN", "RANK"), ("LFWT", "RBWT"), ("LHEE", "LMT5")):
+        assert np.ptp(np.linalg.norm(x[a] - x[b], axis=-1)) < 1e-9
+    # the elbow bends: the upper-arm marker to the wrist is not rigid (by a tenth of the thigh or more)
+    thigh = np.linalg.norm(x["LKNE"][0] - x["LTHI"][0])
+    assert np.ptp(np.linalg.norm(x["LUPA"] - x["LWRA"], axis=-1)) > 0.1 * thigh
+
+
 # ------------------------------------------------------------------ ASF/AMC
 _ASF = """# test skeleton
 :version 1.10

@@ -8,7 +8,7 @@ extension      what                                             options
 ``.c3d``       C3D motion capture (ezc3d)                       zeros_as_missing, drop_unobserved, up_axis
 ``.bvh``       Biovision hierarchy, joints by FK                markers_per_bone, random_state,
                                                                 marker_spread, merge_rigid,
-                                                                position_mode, scale, units
+                                                                position_mode, scale, units, marker_set
 ``.amc``       Acclaim motion + its ``.asf`` skeleton, FK       asf, frame_rate, markers_per_bone, ...
 ``.mat``       Hopkins 155 ``*_truth.mat`` or MoCap Toolbox     take, drop_unobserved, up_axis (toolbox)
 ``.slp``       SLEAP labels (h5py)                              instances, track, instance, video_index,

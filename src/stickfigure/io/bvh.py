@@ -41,6 +41,8 @@ from scipy.spatial.transform import Rotation
 from ..trajectories import Trajectories
 from ._common import OptionError, check_file, fail
 from ._kinematics import Rig, check_rig_options, rig_to_trajectories
+from .markersets import segment_ground_truth
+from .placement import MARKER_SETS, place_cmu41
 
 __all__ = ["load_bvh", "read_bvh"]
 
@@ -347,6 +349,7 @@ def load_bvh(
     position_mode: str = "auto",
     scale: float = 1.0,
     units: str | None = None,
+    marker_set: str | None = None,
 ) -> Trajectories:
     """Load a BVH clip as 3D trajectories of its joints (or of virtual markers).
 
@@ -369,6 +372,12 @@ def load_bvh(
         Factor applied to every position.
     units : str, optional
         Length unit of the file (after ``scale``), recorded in ``meta["units"]``.
+    marker_set : {None, "cmu41"}
+        ``"cmu41"``: the Vicon 41-marker set of CMU and HDM05 placed at its
+        landmarks on a skeleton with CMU joint names
+        (:mod:`stickfigure.io.placement`), with the marker set's ground truth
+        (body segments by marker name, as for a C3D take; no ``joints_true``).
+        Not with ``markers_per_bone``.
 
     Returns
     -------
@@ -384,6 +393,12 @@ def load_bvh(
     if position_mode == "auto":
         position_mode = guess_position_mode(bvh)
     rig = bvh_rig(bvh, position_mode)
+    meta = {"source": str(path), "format": "bvh", "units": units, "frame_time": bvh.frame_time,
+            "position_mode": position_mode,
+            # one figure per ROOT hierarchy (EMSkeleton(max_trees="auto") reads it)
+            "n_figures": sum(1 for n in bvh.nodes if n.parent < 0)}
+    if marker_set is not None:
+        return _marker_set_trajectories(rig, marker_set, markers_per_bone, scale, 1.0 / bvh.frame_time, meta)
     return rig_to_trajectories(
         rig,
         markers_per_bone=markers_per_bone,
@@ -393,8 +408,21 @@ def load_bvh(
         scale=scale,
         up_axis=1,
         frame_rate=1.0 / bvh.frame_time,
-        meta={"source": str(path), "format": "bvh", "units": units, "frame_time": bvh.frame_time,
-              "position_mode": position_mode,
-              # one figure per ROOT hierarchy (EMSkeleton(max_trees="auto") reads it)
-              "n_figures": sum(1 for n in bvh.nodes if n.parent < 0)},
+        meta=meta,
     )
+
+
+def _marker_set_trajectories(rig: Rig, marker_set: Any, markers_per_bone: int, scale: float,
+                             frame_rate: float, meta: dict[str, Any]) -> Trajectories:
+    """A named marker set on the rig, with the marker set's segment ground truth."""
+    if marker_set not in MARKER_SETS:
+        raise OptionError(f"marker_set must be one of {', '.join(map(repr, MARKER_SETS))} or None, "
+                          f"got {marker_set!r}")
+    if markers_per_bone:
+        raise OptionError("give marker_set or markers_per_bone, not both")
+    names, frames, local = place_cmu41(rig.names, rig.parent, rig.point_names, rig.point_frame, rig.point_local)
+    labels_true, part_names, edges, joint_names = segment_ground_truth(names)
+    meta = {**meta, "points": f"marker set {marker_set}", "marker_set": marker_set, "joint_names": joint_names}
+    return Trajectories(xy=rig.positions(frames, local) * scale, names=names, frame_rate=frame_rate,
+                        labels_true=labels_true, part_names=part_names, edges_true=edges, up_axis=1,
+                        meta=meta)
