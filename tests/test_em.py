@@ -1099,3 +1099,17 @@ def test_retry_mid_air_searches_again_and_keeps_the_skeleton_with_the_nearer_joi
     far = EMSkeleton(retry_mid_air=1e9, **kw).fit(chain).skeleton_
     assert "retry" not in far.info
     np.testing.assert_allclose(far.local, plain.local)
+
+
+def test_given_labels_are_kept_with_every_group_move_off():
+    """The options the ``labels`` docstring names keep the given groups as the sticks; the
+    defaults do not (here they join the five small sticks into one)."""
+    from sklearn.metrics import adjusted_rand_score
+
+    t = sf.synthetic.random_figure(5, 60, seed=1, points_per_stick=(1, 3), noise=0.02)
+    keep = dict(refine_sticks=False, resample_every=0, resplit=False, dissolve_points=0, unpair=False,
+                bridge_points=0)
+    kept = sf.fit(t, method="em", random_state=0, labels=t.labels_true, n_iter=60, **keep)
+    assert kept.n_sticks == t.n_parts_true and adjusted_rand_score(t.labels_true, kept.labels) == 1.0
+    moved = sf.fit(t, method="em", random_state=0, labels=t.labels_true, n_iter=60)
+    assert adjusted_rand_score(t.labels_true, moved.labels) < 1.0

@@ -97,9 +97,12 @@ class EMSkeleton(StickEstimator):
     max_sticks : int, optional
         Upper bound of the number of initial clusters (default ``min(20, P // 3)``).
     labels : array_like of int, shape (P,), optional
-        Initial groups of the points instead of Affinity Propagation (resampling and
-        the stick check may still change them; pass ``refine_sticks=False`` and
-        ``resample_every=0`` to keep them).
+        Initial groups of the points instead of Affinity Propagation. The search may
+        still change them: resampling, the stick check and articulated splits, the
+        pair re-split, the dissolutions (and the held-out check), ``unpair`` and the
+        bridges each can. To keep them as the sticks, pass ``refine_sticks=False,
+        resample_every=0, resplit=False, dissolve_points=0, unpair=False,
+        bridge_points=0`` (only the joints are then searched).
     refine_sticks : bool
         After the first EM run, split sticks that are not rigid and join sticks that
         move as one, by BIC (an extension: the paper keeps the clustering's count).
