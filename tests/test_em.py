@@ -1113,3 +1113,27 @@ def test_given_labels_are_kept_with_every_group_move_off():
     assert kept.n_sticks == t.n_parts_true and adjusted_rand_score(t.labels_true, kept.labels) == 1.0
     moved = sf.fit(t, method="em", random_state=0, labels=t.labels_true, n_iter=60)
     assert adjusted_rand_score(t.labels_true, moved.labels) < 1.0
+
+
+@pytest.mark.parametrize("bad", [dict(merge_rank="bic"), dict(align_mirrors="yes")])
+def test_merge_rank_and_align_mirrors_are_checked(chain, bad):
+    with pytest.raises(ValueError, match=next(iter(bad))):
+        EMSkeleton(labels=chain.labels_true, n_iter=5, **bad).fit(chain)
+
+
+@pytest.mark.parametrize("seed", [3, 11])
+def test_residual_ranking_joins_given_segments_into_their_tree(seed):
+    """Known answer: the segments given and kept, the joints ranked by their least-squares residual
+    (mirrors aligned) give the figure's own tree; the fit does not leave the switch on."""
+    from stickfigure.metrics import score_skeleton
+    from stickfigure.models.em import updates
+
+    t = sf.synthetic.random_figure(5, 80, seed=seed, noise=0.01)
+    keep = dict(refine_sticks=False, resample_every=0, resplit=False, dissolve_points=0, unpair=False,
+                bridge_points=0)
+    sk = sf.fit(t, method="em", random_state=0, labels=t.labels_true, n_iter=60, merge_rank="residual",
+                align_mirrors=True, **keep)
+    assert sk.n_sticks == t.n_parts_true and len(sk.edges) == t.n_parts_true - 1
+    assert score_skeleton(sk, t)["edge_f1"] == 1.0
+    assert sk.info["settings"]["merge_rank"] == "residual" and sk.info["settings"]["align_mirrors"] is True
+    assert updates._mirror_tie is None
