@@ -434,7 +434,7 @@ def test_compiled_conversions_give_the_bits_of_the_array_forms():
 
 def test_block_score_is_the_change_of_the_full_objective(scene):
     st, obs, pri = _state(scene)
-    settings = S.EMSettings(n_iter_merge=5, merge_baseline=False, reuse_scores=False)
+    settings = S.EMSettings(n_iter_merge=5, merge_baseline=False, reuse_scores=False, merge_rank="objective")
     st, _, _ = S.run_em(st, obs, pri, settings, 30, np.random.default_rng(0), resample=False)
     cands = S.merge_candidates(st, settings)
     blocks = S.score_candidates(st, obs, pri, settings, cands, np.random.default_rng(0))

@@ -238,27 +238,25 @@ class EMSkeleton(StickEstimator):
         gained two body trees and lost one on the 11 cameras it was run on, and
         anatomical joints can be beyond 0.5 radii (two CMU body trees at 0.52
         and 0.59, the synthetic chain of the tests at 0.55).
-    merge_rank : {"objective", "residual"}
+    merge_rank : {"residual", "objective"}
         How the merge search (and the forced join of trees) ranks the candidate
-        joints. "objective" (default, the paper): by the objective's change after
-        ``n_iter_merge`` sweeps. "residual": by the least-squares joint's residual,
-        how far the two sticks' predictions of one point fixed in both frames stay
-        apart (the sweeps still run: the chosen merge starts from them). The
-        objective ranks a joint by how tight EM can make it, which a stick whose
-        motion its points barely fix can always do; the residual asks whether such
-        a point exists. Best with ``align_mirrors``. With the body's segments given
-        as ``labels`` (every group move off) the search found the body's tree on 6
-        of 6 cameras of CMU 131_01 with the 41 markers placed (1 of 6 with
-        "objective") and on 3 of 6 of the recorded CMU take (0 of 6). On the whole
-        search (segments not given) the body trees stayed 1 of 6 on the placed
-        take; the anatomical share of edges rose from 0.86 to 0.91 (docs/em.md
-        section 11).
+        joints. "residual" (default): by the least-squares joint's residual, how far
+        the two sticks' predictions of one point fixed in both frames stay apart
+        (the sweeps still run: the chosen merge starts from them). "objective" (the
+        paper): by the objective's change after ``n_iter_merge`` sweeps, which ranks
+        a joint by how tight EM can make it; a stick whose motion its points barely
+        fix (two markers, a flat band of four) can be made to meet almost anything.
+        On 24 random cameras of the CMU take (with ``align_mirrors``) the body's
+        tree came out on 17 (12 by the objective); with the body's segments given
+        as ``labels`` (every group move off), on 6 of 6 cameras of CMU 131_01 with
+        the 41 markers placed (1 of 6) and 3 of 6 of the recorded take (0 of 6)
+        (docs/em.md sections 6 and 11).
     align_mirrors : bool
         Keep each flat stick's mirror image continuous over frames where the two
-        images fit equally well (:func:`.updates.align_mirrors`): a pelvis or head
-        band of four coplanar markers otherwise flips between its two mirror poses
-        from frame to frame, and no joint off its plane (the hips, the neck) can
-        be found on it. Default False. Each flipped frame may lower the objective by
+        images fit equally well (:func:`.updates.align_mirrors`; default True): a
+        pelvis or head band of four coplanar markers otherwise flips between its
+        two mirror poses from frame to frame, and no joint off its plane (the hips,
+        the neck) can be found on it. Each flipped frame may lower the objective by
         half a log-likelihood unit at most.
     max_frames : int, optional
         Run the structure search (EM, stick checks, merges) on at most this many
@@ -323,7 +321,7 @@ class EMSkeleton(StickEstimator):
                  remerge: bool = True, split_dissolved: int = 4,
                  unpair: bool = True, bridge_points: int = 2, reattach: bool = True,
                  max_trees: int | str | None = "auto", retry_mid_air: float | None = None,
-                 merge_rank: str = "objective", align_mirrors: bool = False,
+                 merge_rank: str = "residual", align_mirrors: bool = True,
                  max_frames: int | None = 400, oversegment: float | None = 3.5, n_jobs: int | None = None,
                  tau_p: float = 25.0,
                  alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e6, impute_iter: int = 100,

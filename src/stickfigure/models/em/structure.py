@@ -112,8 +112,8 @@ class EMSettings:
     bridge_points: int = 2
     reattach: bool = True
     max_trees: int | None = None
-    merge_rank: str = "objective"
-    align_mirrors: bool = False
+    merge_rank: str = "residual"
+    align_mirrors: bool = True
     # Processes the search may use (forked.py); the result does not depend on it.
     n_jobs: int = 1
 

@@ -481,10 +481,14 @@ def align_mirrors(st: StickState, R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndar
     normal ``R n`` flips between consecutive frames where its dot product is
     negative while both are at least 0.3 long (a true motion turns it by less
     than 90 degrees between frames; through a frame where the plane faces the
-    camera, ``R n`` is short and its sign is left alone). Within each run of
-    tied frames the mirrors are chosen to continue the frame before the run
-    (the parity of the flips, a cumulative sum: no loop over frames). Frames
-    that are not tied keep what the energy chose. A tie-break is not an ascent:
+    camera, ``R n`` is short and its sign is left alone). Each run of tied
+    frames is made continuous within itself (the parity of the flips, a
+    cumulative sum: no loop over frames), in whichever of its two consistent
+    images has the lower total energy, and where those tie, the one that flips
+    fewer frames. Continuing the frame before the run instead carried one
+    frame's wrong image over the whole run: on a 60-frame random figure the fit
+    lost 1200 in BIC and grew a fourth stick. Frames that are not tied keep what
+    the energy chose. A tie-break is not an ascent:
     each frame it flips may lower the objective by up to ``tie / 2`` (the
     energy is twice a log-likelihood), so with alignment on the motion update is
     not monotone by that much.
@@ -515,7 +519,9 @@ def align_mirrors(st: StickState, R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndar
     H = np.eye(3)[None] - 2.0 * n[:, :, None] * n[:, None, :]
     Rk = R[idx]
     Rm = np.einsum("kfdj,kji->kfdi", Rk, H)
-    tied = np.abs(_rotation_energy(Rm, C_ab[idx], C_bb[idx]) - _rotation_energy(Rk, C_ab[idx], C_bb[idx])) <= tie
+    e0 = _rotation_energy(Rk, C_ab[idx], C_bb[idx])
+    e1 = _rotation_energy(Rm, C_ab[idx], C_bb[idx])
+    tied = np.abs(e1 - e0) <= tie
     rn = np.einsum("kfdj,kj->kfd", Rk, n)
     long = np.linalg.norm(rn, axis=-1) >= 0.3
     flip = np.zeros(tied.shape, bool)
@@ -525,6 +531,20 @@ def align_mirrors(st: StickState, R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndar
     last = np.maximum.accumulate(np.where(~tied, np.arange(F)[None], -1), axis=1)
     base = np.where(last >= 0, np.take_along_axis(count, np.maximum(last, 0), axis=1), 0)
     odd = tied & ((count - base) % 2 == 1)
+    # A run of tied frames is made continuous within itself, in whichever of its two consistent
+    # images has the lower total energy (ties: the one that flips fewer frames): continuing an
+    # arbitrary first frame would carry that frame's mirror over the run.
+    run = np.cumsum(~tied, axis=1) + (F + 1) * np.arange(len(idx))[:, None]  # (k, F) run ids
+    e_keep = np.where(odd, e1, e0)  # the run continuous with its first frame
+    e_other = np.where(odd, e0, e1)  # ... with the first frame mirrored
+    n_runs = (F + 1) * len(idx)
+    rid = run[tied]
+    sum_keep = np.bincount(rid, weights=e_keep[tied], minlength=n_runs)
+    sum_other = np.bincount(rid, weights=e_other[tied], minlength=n_runs)
+    n_odd = np.bincount(rid, weights=odd[tied].astype(float), minlength=n_runs)
+    n_tied = np.bincount(rid, minlength=n_runs)
+    other = (sum_other < sum_keep) | ((sum_other == sum_keep) & (n_tied - n_odd < n_odd))
+    odd = np.where(other[run], tied & ~odd, odd)
     if not odd.any():
         return R, None
     R = R.copy()
