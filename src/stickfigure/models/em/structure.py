@@ -769,7 +769,7 @@ def _rank_by_residual(cands: list[Candidate], settings: EMSettings) -> None:
     (:func:`joint_least_squares`, per stick and frame, from the current motions)
     asks whether one point fixed in both sticks' frames exists at all. Measured on
     the body's own segments given as the sticks (docs/em.md section 11): with
-    mirror alignment the body's tree on 6 of 6 cameras of the placed CMU 41-marker
+    mirror alignment the body's tree on 5 of 6 cameras of the placed CMU 41-marker
     set (1 of 6 by the objective) and 3 of 6 of the recorded CMU take (0 of 6).
     """
     if settings.merge_rank == "residual":
