@@ -387,6 +387,12 @@ def load_bvh(
     """
     path = check_file(path)
     check_rig_options(markers_per_bone, marker_spread, scale)
+    if marker_set is not None:  # checked before the file is read, like the other options
+        if not isinstance(marker_set, str) or marker_set not in MARKER_SETS:
+            raise OptionError(f"marker_set must be one of {', '.join(map(repr, MARKER_SETS))} or None, "
+                              f"got {marker_set!r}")
+        if markers_per_bone:
+            raise OptionError("give marker_set or markers_per_bone, not both")
     if position_mode not in ("auto", "add", "replace"):
         raise OptionError(f"position_mode must be 'auto', 'add' or 'replace', got {position_mode!r}")
     bvh = read_bvh(path)
@@ -415,11 +421,6 @@ def load_bvh(
 def _marker_set_trajectories(rig: Rig, marker_set: Any, markers_per_bone: int, scale: float,
                              frame_rate: float, meta: dict[str, Any]) -> Trajectories:
     """A named marker set on the rig, with the marker set's segment ground truth."""
-    if marker_set not in MARKER_SETS:
-        raise OptionError(f"marker_set must be one of {', '.join(map(repr, MARKER_SETS))} or None, "
-                          f"got {marker_set!r}")
-    if markers_per_bone:
-        raise OptionError("give marker_set or markers_per_bone, not both")
     names, frames, local = place_cmu41(rig.names, rig.parent, rig.point_names, rig.point_frame, rig.point_local)
     labels_true, part_names, edges, joint_names = segment_ground_truth(names)
     meta = {**meta, "points": f"marker set {marker_set}", "marker_set": marker_set, "joint_names": joint_names}

@@ -14,9 +14,11 @@ Each marker sits on one bone: ``A + s (B - A) + d``, with ``A`` and ``B`` the
 bone's two joints in the rest pose, ``s`` a fraction along it and ``d`` an
 offset (left, up, forward) in thigh lengths, so the placement scales with the
 subject. It is fixed in the frame of the bone's proximal joint, so it moves
-rigidly with that bone. The offsets are textbook landmark positions (the Vicon
-placement guide's), not measured: a head-band marker sits about 7 cm to the side
-and 9 cm to the front or back, a thigh marker about 6 cm lateral halfway down.
+rigidly with that bone. The offsets were set by hand from the landmarks the
+marker set names (lateral epicondyle, malleolus, acromion, ...), not measured on
+a subject: a head-band marker sits about 7 cm to the side and 9 cm to the front
+or back, a thigh marker about 6 cm lateral halfway down (a thigh length taken as
+43 cm).
 
 A BVH's rest pose has every joint rotation at zero, so a point's rest position is
 the sum of the ``OFFSET``s above it and its local coordinates in a frame are its

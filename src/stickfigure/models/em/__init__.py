@@ -247,7 +247,7 @@ class EMSkeleton(StickEstimator):
         a joint by how tight EM can make it; a stick whose motion its points barely
         fix (two markers, a flat band of four) can be made to meet almost anything.
         On 24 random cameras of the CMU take (with ``align_mirrors``) the body's
-        tree came out on 17 (12 by the objective); with the body's segments given
+        tree came out on 20 (12 by the objective); with the body's segments given
         as ``labels`` (every group move off), on 5 of 6 cameras of CMU 131_01 with
         the 41 markers placed (1 of 6) and 3 of 6 of the recorded take (0 of 6)
         (docs/em.md sections 6 and 11).

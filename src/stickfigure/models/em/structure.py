@@ -681,7 +681,9 @@ def baseline_state(st: StickState, obs: Observations, priors: Priors, settings: 
 def score_candidates(st: StickState, obs: Observations, priors: Priors, settings: EMSettings,
                      cands: list[Candidate], rng: np.random.Generator, base_st: StickState | None = None
                      ) -> list[StickState | None]:
-    """Set ``cand.score`` (change of the objective) for every candidate.
+    """Set ``cand.score`` for every candidate: the change of the objective, or with
+    ``merge_rank="residual"`` minus the least-squares joint residual (:func:`_rank_by_residual`).
+    Callers only rank by it (argmax).
 
     ``base_st``: :func:`baseline_state` of ``st`` (computed when omitted).
     Returns the optimised states: for ``merge_scope="full"`` whole-model copies,
