@@ -404,7 +404,7 @@ def load_bvh(
             # one figure per ROOT hierarchy (EMSkeleton(max_trees="auto") reads it)
             "n_figures": sum(1 for n in bvh.nodes if n.parent < 0)}
     if marker_set is not None:
-        return _marker_set_trajectories(rig, marker_set, markers_per_bone, scale, 1.0 / bvh.frame_time, meta)
+        return _marker_set_trajectories(rig, marker_set, scale, 1.0 / bvh.frame_time, meta)
     return rig_to_trajectories(
         rig,
         markers_per_bone=markers_per_bone,
@@ -418,8 +418,8 @@ def load_bvh(
     )
 
 
-def _marker_set_trajectories(rig: Rig, marker_set: Any, markers_per_bone: int, scale: float,
-                             frame_rate: float, meta: dict[str, Any]) -> Trajectories:
+def _marker_set_trajectories(rig: Rig, marker_set: str, scale: float, frame_rate: float,
+                             meta: dict[str, Any]) -> Trajectories:
     """A named marker set on the rig, with the marker set's segment ground truth."""
     names, frames, local = place_cmu41(rig.names, rig.parent, rig.point_names, rig.point_frame, rig.point_local)
     labels_true, part_names, edges, joint_names = segment_ground_truth(names)

@@ -129,13 +129,10 @@ def rest_positions(point_names: Sequence[str], point_frame: np.ndarray, point_lo
     return points, origins
 
 
-def _is_descendant(child: str, ancestor: str, frame_names: Sequence[str], parent: np.ndarray,
-                   point_names: Sequence[str], point_frame: np.ndarray) -> bool:
-    frame_index = {n: i for i, n in enumerate(frame_names)}
-    if child in frame_index:
-        j = int(parent[frame_index[child]])
-    else:
-        j = int(point_frame[list(point_names).index(child)])
+def _is_descendant(child: str, ancestor: str, frame_index: dict[str, int], parent: np.ndarray,
+                   frame_of_point: dict[str, int]) -> bool:
+    """Whether joint or end site ``child`` hangs below frame ``ancestor``."""
+    j = int(parent[frame_index[child]]) if child in frame_index else frame_of_point[child]
     a = frame_index[ancestor]
     while j >= 0:
         if j == a:
@@ -173,20 +170,24 @@ def place_cmu41(frame_names: Sequence[str], parent: np.ndarray, point_names: Seq
     """
     rest, origins = rest_positions(point_names, point_frame, point_local, frame_names, parent)
     frame_index = {n: i for i, n in enumerate(frame_names)}
-    known = set(rest)
+    frame_of_point = {n: int(f) for n, f in zip(point_names, point_frame)}
+    found: dict[tuple[str, bool], tuple[str, str | None]] = {}
 
     def bone(key: str, right: bool) -> tuple[str, str | None]:
+        if (key, right) in found:
+            return found[key, right]
         for a, b in _BONES[key]:
             a2, b2 = (_right(a), _right(b) if b else None) if right else (a, b)
-            if a2 in frame_index and (b2 is None or (b2 in known and _is_descendant(
-                    b2, a2, frame_names, parent, point_names, point_frame))):
+            if a2 in frame_index and (b2 is None or (b2 in rest and _is_descendant(
+                    b2, a2, frame_index, parent, frame_of_point))):
+                found[key, right] = (a2, b2)
                 return a2, b2
         options = ", ".join(f"{_right(a) if right else a}->{(_right(b) if right else b) or '(none)'}"
                             for a, b in _BONES[key])
         raise OptionError(f"marker_set='cmu41' needs CMU joint names; no bone for the "
                           f"{'right ' if right else ''}{key} ({options})")
 
-    hip_l, hip_r = bone("thigh", False)[0], bone("thigh", True)[0]
+    (hip_l, knee_l), hip_r = bone("thigh", False), bone("thigh", True)[0]
     up = np.array([0.0, 1.0, 0.0])
     left = rest[hip_l] - rest[hip_r]
     left -= left @ up * up
@@ -194,8 +195,7 @@ def place_cmu41(frame_names: Sequence[str], parent: np.ndarray, point_names: Seq
         raise OptionError("marker_set='cmu41': the two hips coincide in the rest pose")
     left /= np.linalg.norm(left)
     forward = np.cross(left, up)
-    a, b = bone("thigh", False)
-    unit = float(np.linalg.norm(rest[b] - rest[a]))  # type: ignore[index]
+    unit = float(np.linalg.norm(rest[knee_l] - rest[hip_l]))  # type: ignore[index]
     if unit == 0:
         raise OptionError("marker_set='cmu41': the thigh has zero length in the rest pose")
     basis = np.stack([left, up, forward]) * unit  # offset (left, up, forward) @ basis -> rest coords

@@ -631,8 +631,9 @@ def update_motions(st: StickState, obs: Observations, *, n_procrustes: int = 1, 
         q = np.where(hold[..., None], np.where(better[..., None], q_int, q0), q)
     if _mirror_tie is not None:  # mirror_alignment: tie-breaks by continuity (not monotone, see there)
         R, changed = align_mirrors(st, R, C_ab, C_bb, _mirror_tie)
-        if changed is not None:
-            q = np.where(changed[..., None], rot_to_quat(complete_rotation(R)), q)
+        if changed is not None:  # only the flipped frames' quaternions change
+            q = q.copy()
+            q[changed] = rot_to_quat(complete_rotation(R[changed]))
     st.rot = R
     st._quat = q
     st._quat_of = R
