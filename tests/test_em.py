@@ -1101,15 +1101,18 @@ def test_retry_mid_air_searches_again_and_keeps_the_skeleton_with_the_nearer_joi
     np.testing.assert_allclose(far.local, plain.local)
 
 
+# The options that keep given groups as the sticks (the ``labels`` docstring names them).
+KEEP_GROUPS = dict(refine_sticks=False, resample_every=0, resplit=False, dissolve_points=0, unpair=False,
+                   bridge_points=0)
+
+
 def test_given_labels_are_kept_with_every_group_move_off():
     """The options the ``labels`` docstring names keep the given groups as the sticks; the
     defaults do not (here they join the five small sticks into one)."""
     from sklearn.metrics import adjusted_rand_score
 
     t = sf.synthetic.random_figure(5, 60, seed=1, points_per_stick=(1, 3), noise=0.02)
-    keep = dict(refine_sticks=False, resample_every=0, resplit=False, dissolve_points=0, unpair=False,
-                bridge_points=0)
-    kept = sf.fit(t, method="em", random_state=0, labels=t.labels_true, n_iter=60, **keep)
+    kept = sf.fit(t, method="em", random_state=0, labels=t.labels_true, n_iter=60, **KEEP_GROUPS)
     assert kept.n_sticks == t.n_parts_true and adjusted_rand_score(t.labels_true, kept.labels) == 1.0
     moved = sf.fit(t, method="em", random_state=0, labels=t.labels_true, n_iter=60)
     assert adjusted_rand_score(t.labels_true, moved.labels) < 1.0
@@ -1129,10 +1132,8 @@ def test_residual_ranking_joins_given_segments_into_their_tree(seed):
     from stickfigure.models.em import updates
 
     t = sf.synthetic.random_figure(5, 80, seed=seed, noise=0.01)
-    keep = dict(refine_sticks=False, resample_every=0, resplit=False, dissolve_points=0, unpair=False,
-                bridge_points=0)
     sk = sf.fit(t, method="em", random_state=0, labels=t.labels_true, n_iter=60, merge_rank="residual",
-                align_mirrors=True, **keep)
+                align_mirrors=True, **KEEP_GROUPS)
     assert sk.n_sticks == t.n_parts_true and len(sk.edges) == t.n_parts_true - 1
     assert score_skeleton(sk, t)["edge_f1"] == 1.0
     assert sk.info["settings"]["merge_rank"] == "residual" and sk.info["settings"]["align_mirrors"] is True
