@@ -368,7 +368,7 @@ def test_merge_scores_are_the_same_in_halves():
     out = {}
     for jobs, batch in [(1, 2_000_000), (2, 2_000_000), (1, 1)]:
         cands = S.merge_candidates(st, S.EMSettings())
-        settings = S.EMSettings(n_jobs=jobs, batch_size=batch)
+        settings = S.EMSettings(n_jobs=jobs, batch_size=batch, merge_rank="objective")  # every block fitted
         blocks = S.score_candidates(st, obs, pri, settings, cands, np.random.default_rng(0))
         out[jobs, batch] = ([c.score for c in cands], blocks)
     assert len(out[1, 2_000_000][0]) > 2
@@ -377,6 +377,29 @@ def test_merge_scores_are_the_same_in_halves():
         for a, b in zip(out[key][1], out[1, 2_000_000][1]):
             np.testing.assert_array_equal(a.rot, b.rot)
             np.testing.assert_array_equal(a.mu_v, b.mu_v)
+
+
+def test_residual_ranking_fits_only_the_best_block_and_the_same_one():
+    # merge_rank="residual" ranks without the sweeps, so only the merge taken is fitted; its block is
+    # the one every-candidate scoring gives it, bit for bit, and so is the merged model.
+    traj, obs = _scene(6, 5)
+    pri = Priors()
+    st = initial_state(obs, traj.labels_true, traj.n_parts_true, pri, np.random.default_rng(0))
+    st, _, _ = S.run_em(st, obs, pri, S.EMSettings(), 30, np.random.default_rng(0), resample=False)
+    every = S.EMSettings(merge_rank="objective")
+    cands = S.merge_candidates(st, every)
+    all_blocks = S.score_candidates(st, obs, pri, every, cands, np.random.default_rng(0))
+    ranked = S.merge_candidates(st, S.EMSettings())
+    blocks = S.score_candidates(st, obs, pri, S.EMSettings(), ranked, np.random.default_rng(0))
+    assert [c.score for c in ranked] == [-c.residual for c in ranked]
+    b = int(np.argmin([c.residual for c in ranked]))
+    assert len(ranked) > 2 and [i for i, x in enumerate(blocks) if x is not None] == [b]
+    for name in ("rot", "trans", "local", "ends", "mu_e", "tau_e", "mu_v", "tau_v", "alpha", "beta"):
+        np.testing.assert_array_equal(getattr(blocks[b], name), getattr(all_blocks[b], name))
+    one = S.apply_merge(st, ranked[b], pri, S.EMSettings(), blocks[b])
+    two = S.apply_merge(st, cands[b], pri, every, all_blocks[b])
+    np.testing.assert_array_equal(one.rot, two.rot)
+    np.testing.assert_array_equal(one.mu_v, two.mu_v)
 
 
 def test_articulated_split_candidates_are_the_same_in_halves(monkeypatch):

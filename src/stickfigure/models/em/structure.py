@@ -685,32 +685,47 @@ def score_candidates(st: StickState, obs: Observations, priors: Priors, settings
     ``merge_rank="residual"`` minus the least-squares joint residual (:func:`_rank_by_residual`).
     Callers only rank by it (argmax).
 
-    ``base_st``: :func:`baseline_state` of ``st`` (computed when omitted).
+    ``base_st``: :func:`baseline_state` of ``st`` (computed when omitted; not
+    needed with ``merge_rank="residual"``).
     Returns the optimised states: for ``merge_scope="full"`` whole-model copies,
-    for ``"local"`` the blocks (re-inserted by :func:`apply_merge`).
+    for ``"local"`` the blocks (re-inserted by :func:`apply_merge`). With
+    ``merge_rank="residual"`` only the best candidate (the first argmax) is
+    optimised and the other entries are None: the residual ranks without the
+    ``n_iter_merge`` sweeps, which only warm-start the merge taken. Its block is
+    the same, bit for bit, as when every candidate is optimised (a block's fit
+    does not depend on the blocks beside it: :mod:`.forked`).
     """
     if settings.merge_scope not in ("local", "full"):
         raise ValueError(f"merge_scope must be 'local' or 'full', got {settings.merge_scope!r}")
     if settings.merge_rank not in ("objective", "residual"):
         raise ValueError(f"merge_rank must be 'objective' or 'residual', got {settings.merge_rank!r}")
-    if base_st is None:
-        base_st = baseline_state(st, obs, priors, settings)
+    by_residual = settings.merge_rank == "residual"
+    if by_residual:
+        _rank_by_residual(cands, settings)
+        todo = [int(np.argmax([c.score for c in cands]))] if cands else []
+    else:
+        todo = list(range(len(cands)))
+        if base_st is None:
+            base_st = baseline_state(st, obs, priors, settings)
     if settings.merge_scope == "full":
-        base = objective(base_st, obs, priors)
-        outs: list[StickState | None] = []
-        for c in cands:
+        base = None if by_residual else objective(base_st, obs, priors)
+        outs: list[StickState | None] = [None] * len(cands)
+        for idx in todo:
+            c = cands[idx]
             m = merge_vertices(st, c, priors, settings.merge_init)
             if settings.merge_init == "joint" and settings.n_polish:
                 polish_joints(m, obs, priors, [c.j1], [_cap(st, c)], settings.n_polish)
             m, val, _ = run_em(m, obs, priors, replace_tol(settings), settings.n_iter_merge, rng, resample=False)
-            c.score = val - base
-            outs.append(m)
-        _rank_by_residual(cands, settings)
+            if not by_residual:
+                c.score = val - base
+            outs[idx] = m
         return outs
-    ps, pv = objective_terms(base_st, obs, priors)
+    if not by_residual:
+        ps, pv = objective_terms(base_st, obs, priors)
     results: list[StickState | None] = [None] * len(cands)
     prepared = []
-    for idx, c in enumerate(cands):
+    for idx in todo:
+        c = cands[idx]
         sticks = np.unique(c.ends // st.ends_per_stick)
         sub, sobs, maps = _block(st, obs, sticks)
         vm = {int(v): r for r, v in enumerate(maps["verts"])}
@@ -718,7 +733,7 @@ def score_candidates(st: StickState, obs: Observations, priors: Priors, settings
         local_c = Candidate(j1=vm[c.j1], j2=vm[c.j2], residual=c.residual,
                             ends=np.array([em[int(e)] for e in c.ends]), k=c.k)
         sub = merge_vertices(sub, local_c, priors, settings.merge_init)
-        before = float(ps[sticks].sum() + pv[maps["verts"]].sum())
+        before = 0.0 if by_residual else float(ps[sticks].sum() + pv[maps["verts"]].sum())
         # After merge_vertices the merged vertex keeps index j1 (j1 < j2).
         prepared.append((idx, sub, sobs, maps, before, local_c.j1))
 
@@ -756,9 +771,9 @@ def score_candidates(st: StickState, obs: Observations, priors: Priors, settings
     # Half of the blocks in a forked child (n_jobs > 1): the same numbers, bit for bit.
     fitted = in_halves(fit, prepared, parallel=settings.n_jobs > 1, weights=[it[2].w.size for it in prepared])
     for (idx, _, _, _, before, _), (after, done) in zip(prepared, fitted):
-        cands[idx].score = after - before + _g_prior_change(st, cands[idx])
+        if not by_residual:
+            cands[idx].score = after - before + _g_prior_change(st, cands[idx])
         results[idx] = done
-    _rank_by_residual(cands, settings)
     return results
 
 
@@ -798,9 +813,9 @@ def _score_into(st: StickState, obs: Observations, priors: Priors, settings: EMS
     """Score ``cands`` (fresh) and remember their optimised states by candidate id."""
     if not cands:
         return
-    if "state" not in base:
+    if "state" not in base and settings.merge_rank != "residual":
         base["state"] = baseline_state(st, obs, priors, settings)
-    for c, b in zip(cands, score_candidates(st, obs, priors, settings, cands, rng, base["state"])):
+    for c, b in zip(cands, score_candidates(st, obs, priors, settings, cands, rng, base.get("state"))):
         c.fresh = True
         blocks[id(c)] = b
 

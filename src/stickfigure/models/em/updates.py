@@ -518,7 +518,8 @@ def align_mirrors(st: StickState, R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndar
     n = axes[idx, 0, 0]  # (k, 3): the minor axis, the plane's normal
     H = np.eye(3)[None] - 2.0 * n[:, :, None] * n[:, None, :]
     Rk = R[idx]
-    Rm = np.einsum("kfdj,kji->kfdi", Rk, H)
+    # R H by elementwise products summed in einsum's order (the same bits, in half the time of the einsum)
+    Rm = Rk[..., 0:1] * H[:, None, None, 0] + Rk[..., 1:2] * H[:, None, None, 1] + Rk[..., 2:3] * H[:, None, None, 2]
     e0 = _rotation_energy(Rk, C_ab[idx], C_bb[idx])
     e1 = _rotation_energy(Rm, C_ab[idx], C_bb[idx])
     tied = np.abs(e1 - e0) <= tie
