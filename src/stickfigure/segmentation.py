@@ -898,9 +898,9 @@ def _rigidity_model_selection(xy: np.ndarray, A: np.ndarray, labels: np.ndarray,
     def worst(m: np.ndarray) -> float:
         return float(np.max(np.where(np.isfinite(m), m, 0.0), initial=0.0))
 
-    def polish(lab: np.ndarray, refine: bool = refine) -> np.ndarray:
+    def polish(lab: np.ndarray, use_refine: bool = refine) -> np.ndarray:
         lab = _renumber(lab)
-        if refine:
+        if use_refine:
             lab = _refine(X, lab, rank=rank)
         for _ in range(3):
             k = int(lab.max()) + 1
@@ -914,7 +914,7 @@ def _rigidity_model_selection(xy: np.ndarray, A: np.ndarray, labels: np.ndarray,
             lab = lab.copy()
             lab[pts] = keep[np.argmin(R[:, pts], axis=0)]
             lab = _renumber(lab)
-            if refine:
+            if use_refine:
                 lab = _refine(X, lab, rank=rank)
         return lab
 
