@@ -50,7 +50,9 @@ class EMSkeleton(StickEstimator):
     n_iter : int
         EM iterations after initialisation and after every merge (paper: 200).
     n_iter_merge : int
-        EM iterations used to score each candidate merge (paper: 20).
+        EM iterations used to score each candidate merge (paper: 20); with
+        ``merge_rank="residual"`` they run only for the merge taken, whose start
+        they polish.
     resample_every : int
         Resample the point-to-stick assignments every this many iterations (paper: 10; 0 = never).
     resample : {"sample", "map"}
@@ -84,7 +86,7 @@ class EMSkeleton(StickEstimator):
     merge_baseline : bool
         Compare a candidate with the model run for the same ``n_iter_merge``
         iterations without the merge (True), or with the model before them (the
-        paper); see docs/em.md.
+        paper); see docs/em.md. Only used with ``merge_rank="objective"``.
     n_polish : int
         Rounds of joint/rotation re-fitting that start a ``"joint"`` merge (0: none).
     reuse_scores : bool
@@ -242,7 +244,8 @@ class EMSkeleton(StickEstimator):
         How the merge search (and the forced join of trees) ranks the candidate
         joints. "residual" (default): by the least-squares joint's residual, how far
         the two sticks' predictions of one point fixed in both frames stay apart
-        (the sweeps still run: the chosen merge starts from them). "objective" (the
+        (only the chosen merge runs the ``n_iter_merge`` sweeps, and starts from
+        them). "objective" (the
         paper): by the objective's change after ``n_iter_merge`` sweeps, which ranks
         a joint by how tight EM can make it; a stick whose motion its points barely
         fix (two markers, a flat band of four) can be made to meet almost anything.

@@ -36,6 +36,8 @@ Deviations from the printed algorithm, each a parameter (docs/em.md):
   few points keeps creeping up for hundreds of iterations (an alternating
   least-squares valley between rotations and local shape), and without the
   baseline that creep is credited to whichever merge touches those sticks.
+  With ``merge_rank="residual"`` (the default) no score is an objective change
+  and the baseline is not run.
 * ``reuse_scores`` (default True): a candidate's score is kept from the stage
   where it was computed while none of its sticks was involved in a later merge
   or changed more than a quarter of its points; the best candidate is always re-scored before it is taken
@@ -701,7 +703,7 @@ def score_candidates(st: StickState, obs: Observations, priors: Priors, settings
         raise ValueError(f"merge_rank must be 'objective' or 'residual', got {settings.merge_rank!r}")
     by_residual = settings.merge_rank == "residual"
     if by_residual:
-        _rank_by_residual(cands, settings)
+        _rank_by_residual(cands)
         todo = [int(np.argmax([c.score for c in cands]))] if cands else []
     else:
         todo = list(range(len(cands)))
@@ -777,8 +779,8 @@ def score_candidates(st: StickState, obs: Observations, priors: Priors, settings
     return results
 
 
-def _rank_by_residual(cands: list[Candidate], settings: EMSettings) -> None:
-    """With ``merge_rank="residual"`` a candidate's score is minus its least-squares joint residual.
+def _rank_by_residual(cands: list[Candidate]) -> None:
+    """A candidate's score under ``merge_rank="residual"``: minus its least-squares joint residual.
 
     The objective's change after 20 sweeps ranks a joint by how tight the EM can make
     it, which a stick whose motion its points barely fix (two markers, a flat band
@@ -789,9 +791,8 @@ def _rank_by_residual(cands: list[Candidate], settings: EMSettings) -> None:
     mirror alignment the body's tree on 5 of 6 cameras of the placed CMU 41-marker
     set (1 of 6 by the objective) and 3 of 6 of the recorded CMU take (0 of 6).
     """
-    if settings.merge_rank == "residual":
-        for c in cands:
-            c.score = -float(c.residual)
+    for c in cands:
+        c.score = -float(c.residual)
 
 
 def _chunks(sizes: list[int], limit: int) -> list[tuple[int, int]]:
