@@ -711,14 +711,14 @@ def affinity_propagation_segments(
         # result competes only where it is a partition into rigid parts (no excess). On motion
         # capture no partition is (markers move on the skin); there the unpolished splits gave
         # sticks of markers from unconnected segments (a thigh marker with a back marker).
+        if refine:  # each start polished once, for both of its checks
+            starts = {name: _refine(X, lab, rank=rank) for name, lab in starts.items()}
         variants = [(name, lab, False) for name, lab in starts.items()]
         try_plain = refine and n_segments is None and noise_regime
         if try_plain:
             variants += [(f"{name}, plain splits", lab, True) for name, lab in starts.items()]
         for name, lab, plain in variants:
             sub: dict[str, Any] = {}
-            if refine:
-                lab = _refine(X, lab, rank=rank)
             if n_segments is None:
                 lab = _rigidity_model_selection(xyc, A, lab, rank, float(np.sqrt(sig2)), max_segments, seed,
                                                 refine, sub, inliers=inliers, noise_regime=noise_regime,
