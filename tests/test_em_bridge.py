@@ -288,3 +288,28 @@ def test_two_one_point_sticks_are_linked_only_where_nothing_else_spans(monkeypat
     for labels in ([0, 0, 0, 0, 1, 1, 2, 2], [0, 1, 2]):
         st.labels = np.array(labels)
         assert stick_edges(st) == ([(0, 2), (1, 2)], [0, 0])
+
+
+def test_no_merge_makes_a_joint_of_one_point_sticks_only():
+    # Two 1-point sticks turn freely about their points: a joint of theirs alone is fixed in
+    # neither frame and ties nothing, while a criterion would still credit it as a joint.
+    from stickfigure.models.em.initialise import initial_state
+
+    traj = _hub_figure(0)
+    obs, _, _ = normalise(traj.xy)
+    settings, priors = EMSettings(n_iter=40, resample_every=0), Priors()
+    rng = np.random.default_rng(0)
+    st, _, _ = run_em(initial_state(obs, traj.labels_true, 5, priors, rng), obs, priors, settings, 40, rng)
+    E = st.ends_per_stick
+    assert np.bincount(st.labels).tolist() == [5, 1, 1, 4, 4]  # sticks 1 and 2: the thighs
+    assert st.only_one_point_sticks(st.vertex_of[E * 1]) and not st.only_one_point_sticks(st.vertex_of[0])
+    assert st.only_one_point_sticks(st.vertex_of[[E * 1, E * 2]])
+    assert not st.only_one_point_sticks(st.vertex_of[[0, E * 1]])
+    pairs = [set((c.ends // E).tolist()) for c in merge_candidates(st, replace(settings, max_candidates=None))]
+    assert {1, 2} not in pairs and {0, 1} in pairs and {1, 3} in pairs
+    # With the pelvis on the joint the second thigh may join it: the pelvis fixes where it is.
+    c = next(c for c in merge_candidates(st, replace(settings, max_candidates=None))
+             if set((c.ends // E).tolist()) == {0, 1})
+    st = apply_merge(st, c, priors, settings, score_candidates(st, obs, priors, settings, [c], rng)[0])
+    joined = [set((c.ends // E).tolist()) for c in merge_candidates(st, replace(settings, max_candidates=None))]
+    assert {0, 1, 2} in joined and {1, 2} not in joined

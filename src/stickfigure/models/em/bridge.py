@@ -232,6 +232,8 @@ def insert_bridge(st: StickState, obs: Observations, priors: Priors, settings, p
     far = [lp + (lp - k0) / (i + 1) for i in range(min(E - 1, 2))]
     far += [lp + np.array([0.0, 0.0, 0.1 * i]) for i in range(1, E - 2)]
     out = _with_new_stick(cut, priors, p, b, [k0] + far, [ve], local=lp)
+    if out.only_one_point_sticks(ve):
+        return None  # a joint of 1-point sticks ties nothing (StickState.only_one_point_sticks)
     # The new stick goes into the joint b left: merges of a free endpoint of it with the sticks
     # still on that joint (a 1-point stick's two joints constrain each other little, so a link
     # scored anywhere in the tree would go wherever a loose joint fits worst).
@@ -399,8 +401,8 @@ def unpair_hubs(st: StickState, obs: Observations, priors: Priors, settings, rng
     def run(key: tuple[int, tuple[int, ...]], r: np.random.Generator) -> tuple[StickState, float, int] | None:
         now = cur["st"]
         new = split_pair(now, obs, priors, key[0])
-        if new is None:
-            return None
+        if new is None or any(new.only_one_point_sticks(j) for j in np.flatnonzero(new.vertex_counts() >= 2)):
+            return None  # (a joint of 1-point sticks ties nothing: StickState.only_one_point_sticks)
         trees = int(components(now)[0].max()) + 1
         new, val, n = run_em(new, obs, priors, settings, settings.n_iter, r)
         new, val, m, _ = join_trees(new, obs, priors, settings, r, val, trees)

@@ -323,6 +323,17 @@ class StickState:
         """
         return (self.vertex_counts() >= 2)[self.vertex_of].reshape(self.n_sticks, -1).sum(axis=1)
 
+    def only_one_point_sticks(self, vertices: int | np.ndarray | list[int]) -> bool:
+        """Whether every endpoint on ``vertices`` (one index or several, taken as one joint) is of a
+        1-point stick.
+
+        Such a joint is fixed in none of its sticks' frames: each turns freely about its
+        point in every frame, so the joint can be anywhere within their reach and ties
+        nothing, while a criterion still credits it as a joint (one vertex fewer).
+        """
+        on = np.flatnonzero(np.isin(self.vertex_of, np.atleast_1d(vertices))) // self.ends_per_stick
+        return bool(on.size) and bool(np.all(np.bincount(self.labels, minlength=self.n_sticks)[on] == 1))
+
     def copy(self) -> "StickState":
         arrays = {k: getattr(self, k).copy() for k in ("labels", "vertex_of", "rot", "trans", "local", "ends",
                                                         "mu_e", "tau_e", "mu_v", "tau_v", "alpha", "beta")}

@@ -472,6 +472,8 @@ def merge_candidates(st: StickState, settings: EMSettings, seen: np.ndarray | No
             gains = resolved[alone[st.vertex_of[resolved]]] // E
             if np.any((size[gains] == 1) & (joints[gains] >= 2)):
                 continue
+            if st.only_one_point_sticks(vs):  # a joint that ties nothing (StickState.only_one_point_sticks)
+                continue
             out.append(Candidate(j1=vs[0], j2=vs[1], residual=res, ends=resolved,
                                  k=k if settings.merge_init == "joint" else None,
                                  key=tuple(sorted([side_key(a), side_key(b)]))))

@@ -157,6 +157,8 @@ def reattach_subtrees(st: StickState, obs: Observations, priors: Priors, setting
         j = int(now.vertex_of[e])
         partners = sorted({int(x // E) for x in np.flatnonzero(now.vertex_of == j) if x != e})
         cut = detach_endpoint(now, e, priors)
+        if cut.vertex_counts()[j] >= 2 and cut.only_one_point_sticks(j):
+            return None  # it would leave a joint that ties nothing (StickState.only_one_point_sticks)
         comp = components(cut)[0]
         whole = components(now)[0]
         tree = whole == whole[e // E]
