@@ -313,3 +313,64 @@ def test_no_merge_makes_a_joint_of_one_point_sticks_only():
     st = apply_merge(st, c, priors, settings, score_candidates(st, obs, priors, settings, [c], rng)[0])
     joined = [set((c.ends // E).tolist()) for c in merge_candidates(st, replace(settings, max_candidates=None))]
     assert {0, 1, 2} in joined and {1, 2} not in joined
+
+
+def _y_figure(seed: int, frames: int = 120):
+    """A torso (6 points) with a head (4) on its end and an arm (5) on a shoulder beside it."""
+    from scipy.spatial.transform import Rotation
+
+    from stickfigure.synthetic import FigureSpec, _finish, _forward_kinematics, _smooth_rotvecs
+
+    rng = np.random.default_rng(seed)
+    parent = np.array([-1, 0, 0])
+    lengths = np.array([1.0, 0.5, 1.0])
+    attach = np.array([[0, 0, 0], [1.0, 0, 0], [0.85, 0, 0.35]])
+    counts = np.array([6, 4, 5])
+    labels = np.repeat(np.arange(3), counts)
+    local = np.concatenate([np.c_[rng.uniform(0.1, 0.9, n) * lengths[s], rng.normal(0, 0.15, (n, 2))]
+                            for s, n in enumerate(counts)])
+    spec = FigureSpec(parent=parent, attach=attach, lengths=lengths, local=local, labels=labels)
+    rest = rng.uniform(-np.pi, np.pi, size=(3, 1, 3))
+    motion = _smooth_rotvecs(rng, 3, frames, 0.9, False)
+    rel = Rotation.from_rotvec((rest + motion).reshape(-1, 3)).as_matrix().reshape(3, frames, 3, 3)
+    pts, joints = _forward_kinematics(spec, rel, np.zeros((frames, 3)))
+    return _finish(pts, joints, spec, rng, 0.01, (30.0, 20.0), False, {"generator": "test"}, frame_rate=30.0)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_dissolved_link_hangs_its_part_where_its_near_point_went(seed):
+    # A stick of a head point and the torso point nearest the shoulder, between the head and
+    # the arm (CMU's RBHD+RSHO with the upper arm on it). Dissolved, the torso point goes back
+    # to the torso, on the head's side: the arm hangs there, not on the head, which a
+    # contraction of the stick's two joints would give.
+    from stickfigure.models.em.initialise import initial_state
+    from stickfigure.models.em.refine import dissolve_stick
+
+    traj = _y_figure(seed)
+    T = traj.labels_true
+    obs, _, _ = normalise(traj.xy)
+    joint = {frozenset(map(int, e)): traj.joints_true[k] for k, e in enumerate(traj.edges_true)}
+
+    def dist(idx, j):  # (n,) mean image distance of the points idx from joint j
+        return np.nanmean(np.linalg.norm(traj.xy[idx] - joint[frozenset(j)][None], axis=-1), axis=1)
+
+    torso, heads = np.flatnonzero(T == 0), np.flatnonzero(T == 1)
+    near = int(torso[np.argmin(dist(torso, {0, 2}))])  # the torso point nearest the shoulder
+    head = int(heads[np.argmax(dist(heads, {0, 1}))])  # the head point farthest from the neck
+    labels = T.copy()
+    labels[[near, head]] = 3
+    settings, priors = EMSettings(n_iter=100, resample_every=0), Priors()
+    rng = np.random.default_rng(0)
+    st, _, _ = run_em(initial_state(obs, labels, 4, priors, rng), obs, priors, settings, 100, rng)
+    E = st.ends_per_stick
+    for pair in ({0, 1}, {1, 3}, {2, 3}):
+        cands = [c for c in merge_candidates(st, replace(settings, max_candidates=None))
+                 if set((c.ends // E).tolist()) == pair]
+        c = min(cands, key=lambda c: c.residual)
+        st = apply_merge(st, c, priors, settings, score_candidates(st, obs, priors, settings, [c], rng)[0])
+        st, _, _ = run_em(st, obs, priors, settings, 60, rng)
+    assert sorted(map(sorted, stick_edges(st)[0])) == [[0, 1], [1, 3], [2, 3]]
+    out = dissolve_stick(st, obs, priors, 3)
+    assert out.labels[near] == 0 and np.all(out.labels[T == 2] == 2)
+    assert sorted(map(sorted, stick_edges(out)[0])) == [[0, 1], [0, 2]]
+    assert components(out)[0].max() == 0

@@ -501,8 +501,10 @@ def dissolve_stick(st: StickState, obs: Observations, priors: Priors, s: int) ->
     its local coordinates refitted (:func:`assign.candidate_fits`, the posterior
     mode of the resampling without ``s``). The vertices where ``s`` meets other
     sticks become one vertex (the stick shrinks to a point, so its neighbours
-    now share a joint; contracting one stick of a tree leaves a tree). That
-    joint's endpoints start at the least-squares joint of their sticks
+    now share a joint; contracting one stick of a tree leaves a tree). For a
+    stick on two joints, a part may instead hang from the stick that took the
+    point of ``s`` nearest its joint (:func:`_relink_vertices`; also a tree).
+    That joint's endpoints start at the least-squares joint of their sticks
     (:func:`structure.joint_least_squares`) and its precision as in a merge.
     """
     from .assign import candidate_fits, remove_sticks
@@ -525,14 +527,17 @@ def dissolve_stick(st: StickState, obs: Observations, priors: Priors, s: int) ->
     own = st.vertex_of[E * s:E * (s + 1)]
     joints = np.unique(own[cnt[own] >= 2])
     a_cap = float(np.max(st.alpha[joints] / st.beta[joints])) if joints.size else 0.0
+    # The vertices made one: the two joints of a stick between two parts, unless a part is
+    # better hung where the point nearest its joint went (_relink_vertices); all joints of a hub.
+    unify = _relink_vertices(st, out, obs, s, pts, joints) if joints.size == 2 else joints
     if joints.size >= 2:
-        out.vertex_of[np.isin(out.vertex_of, joints)] = joints[0]
+        out.vertex_of[np.isin(out.vertex_of, unify)] = unify[0]
     out = remove_sticks(out, np.array([s]))
     if joints.size >= 2:
         # The contracted joint, in the new vertex numbering (remove_sticks keeps the order of
         # the remaining endpoints).
         old_v = st.vertex_of[np.repeat(np.arange(S) != s, E)]
-        jn = int(out.vertex_of[np.flatnonzero(np.isin(old_v, joints))[0]])
+        jn = int(out.vertex_of[np.flatnonzero(np.isin(old_v, unify))[0]])
         ends = np.flatnonzero(out.vertex_of == jn)
         if ends.size >= 2:
             k, _ = joint_least_squares(out, list(ends // E), list(out.ends[ends]), seen=out.design(obs).n)
@@ -550,6 +555,44 @@ def dissolve_stick(st: StickState, obs: Observations, priors: Priors, s: int) ->
     out._quat = None
     update_endpoints(out)
     return out
+
+
+def _relink_vertices(st: StickState, moved: StickState, obs: Observations, s: int, pts: np.ndarray,
+                     joints: np.ndarray) -> np.ndarray:
+    """The two vertices made one when stick ``s``, on the two joints ``joints``, is dissolved.
+
+    ``moved``: ``st`` with the points ``pts`` of ``s`` already on their new sticks.
+    Contracting ``s`` (the two joints) links its two neighbours to each other. But
+    where the point of ``s`` nearest one of its joints (RMS distance over the point's
+    frames) went to a stick on the *other* side of ``s``, the part on that joint hangs
+    from that stick instead, at its vertex nearest the joint: the shoulder marker of a
+    stick that also held a head marker goes back to the torso, which hangs on the
+    head's side, and the arm that was on the shoulder joint goes with it, not onto the
+    head (CMU 85_02, docs/em.md section 11, session 14). When both joints qualify, the
+    nearer vertex is taken; when neither does, the contraction.
+    """
+    from .assign import remove_sticks
+    from .bridge import _vertex_distances
+    from .structure import components
+
+    E = st.ends_per_stick
+    without = remove_sticks(moved, np.array([s]))
+    comp_s, comp_v = components(without)
+    new_stick = np.cumsum(np.arange(st.n_sticks) != s) - 1  # numbering without s
+    old_v = st.vertex_of[np.repeat(np.arange(st.n_sticks) != s, E)]  # without's endpoints, st's vertices
+    side = {int(j): int(comp_v[without.vertex_of[np.flatnonzero(old_v == j)[0]]]) for j in joints}
+    best: tuple[float, int, int] | None = None
+    for k, j in enumerate(joints):
+        d = [float(_vertex_distances(st, obs, np.array([j]), int(p))[0]) for p in pts]
+        t = int(moved.labels[pts[int(np.argmin(d))]])
+        if comp_s[new_stick[t]] != side[int(joints[1 - k])]:
+            continue  # it went to this joint's own side: that part stays where it is
+        verts = np.unique(st.vertex_of[E * t:E * (t + 1)])
+        dv = np.sum((st.mu_v[verts] - st.mu_v[j][None]) ** 2, axis=(1, 2))
+        i = int(np.argmin(dv))
+        if best is None or dv[i] < best[0]:
+            best = (float(dv[i]), int(j), int(verts[i]))
+    return joints if best is None else np.array([best[1], best[2]])
 
 
 def _next_small_stick(st: StickState, order: np.ndarray, max_points: int, tried: set, scope: str = "all"
