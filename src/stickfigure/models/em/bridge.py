@@ -62,7 +62,8 @@ import numpy as np
 from .model import Ghosts, Observations, Priors, StickState
 from .updates import em_sweep, update_endpoints
 
-__all__ = ["bridge_points", "bridge_threshold", "insert_bridge", "lever_points", "split_pair", "unpair_hubs"]
+__all__ = ["bridge_points", "bridge_threshold", "insert_bridge", "lever_points", "split_pair", "unpair_hubs",
+           "vertex_distances"]
 
 
 def lever_points(st: StickState, obs: Observations, priors: Priors, *, min_points: int = 3,
@@ -142,7 +143,7 @@ def bridge_threshold(obs: Observations) -> float:
     return 0.25 * (3.0 * obs.n_frames + 9.0) * np.log(max(N, 2.0))
 
 
-def _vertex_distances(st: StickState, obs: Observations, vertices: np.ndarray, p: int) -> np.ndarray:
+def vertex_distances(st: StickState, obs: Observations, vertices: np.ndarray, p: int) -> np.ndarray:
     """Mean squared distance of each vertex's trajectory from point ``p``'s over ``p``'s observed
     frames, shape (len(vertices),)."""
     m = obs.mask[p]
@@ -153,7 +154,7 @@ def _vertex_distances(st: StickState, obs: Observations, vertices: np.ndarray, p
 def _nearest_joints(st: StickState, obs: Observations, p: int, n: int) -> np.ndarray:
     """The ``n`` joints (vertices of two or more endpoints) whose trajectories are nearest point ``p``'s."""
     joints = np.flatnonzero(st.vertex_counts() >= 2)
-    return joints[np.argsort(_vertex_distances(st, obs, joints, p), kind="stable")[:n]]
+    return joints[np.argsort(vertex_distances(st, obs, joints, p), kind="stable")[:n]]
 
 
 def _with_new_stick(cut: StickState, priors: Priors, point: int, like: int, ends: list,
@@ -339,7 +340,7 @@ def split_pair(st: StickState, obs: Observations, priors: Priors, c: int) -> Sti
     p, q = (int(x) for x in idx)
     cnt = st.vertex_counts()
     jointed = [e for e in range(E * c, E * (c + 1)) if cnt[st.vertex_of[e]] >= 2]
-    to_p, to_q = (_vertex_distances(st, obs, st.vertex_of[jointed], x) for x in (p, q))
+    to_p, to_q = (vertex_distances(st, obs, st.vertex_of[jointed], x) for x in (p, q))
     moved = [e for e, dp, dq in zip(jointed, to_p, to_q) if dq < dp]
     if not moved or len(moved) == len(jointed):
         return None

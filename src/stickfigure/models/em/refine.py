@@ -572,7 +572,7 @@ def _relink_vertices(st: StickState, moved: StickState, obs: Observations, s: in
     nearer vertex is taken; when neither does, the contraction.
     """
     from .assign import remove_sticks
-    from .bridge import _vertex_distances
+    from .bridge import vertex_distances
     from .structure import components
 
     E = st.ends_per_stick
@@ -583,7 +583,7 @@ def _relink_vertices(st: StickState, moved: StickState, obs: Observations, s: in
     side = {int(j): int(comp_v[without.vertex_of[np.flatnonzero(old_v == j)[0]]]) for j in joints}
     best: tuple[float, int, int] | None = None
     for k, j in enumerate(joints):
-        d = [float(_vertex_distances(st, obs, np.array([j]), int(p))[0]) for p in pts]
+        d = [float(vertex_distances(st, obs, np.array([j]), int(p))[0]) for p in pts]
         t = int(moved.labels[pts[int(np.argmin(d))]])
         if comp_s[new_stick[t]] != side[int(joints[1 - k])]:
             continue  # it went to this joint's own side: that part stays where it is
