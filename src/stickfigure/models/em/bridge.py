@@ -208,8 +208,8 @@ def insert_bridge(st: StickState, obs: Observations, priors: Priors, settings, p
 
     Step 2 of the module docstring. Returns the state after EM, its objective, the
     sweeps run and a record ``{"point", "detached", "linked"}`` (stick numbers of
-    the new state; the new stick is the last), or None when no merge links the new
-    stick to the joint's other sticks.
+    the new state; the new stick is the last), or None when ``e``'s stick holds one
+    point or no merge links the new stick to the joint's other sticks.
     """
     from .assign import candidate_fits
     from .structure import (
@@ -222,6 +222,10 @@ def insert_bridge(st: StickState, obs: Observations, priors: Priors, settings, p
 
     E = st.ends_per_stick
     b = int(e // E)
+    if np.count_nonzero(st.labels == b) == 1:
+        # e's new vertex would join b and the new stick, both of one point: a joint that ties
+        # nothing (StickState.only_one_point_sticks); known before any state is built.
+        return None
     loc, _ = candidate_fits(st, obs, priors)
     cut = detach_endpoint(st, e, priors)
     ve = int(cut.vertex_of[e])
@@ -233,8 +237,6 @@ def insert_bridge(st: StickState, obs: Observations, priors: Priors, settings, p
     far = [lp + (lp - k0) / (i + 1) for i in range(min(E - 1, 2))]
     far += [lp + np.array([0.0, 0.0, 0.1 * i]) for i in range(1, E - 2)]
     out = _with_new_stick(cut, priors, p, b, [k0] + far, [ve], local=lp)
-    if out.only_one_point_sticks(ve):
-        return None  # a joint of 1-point sticks ties nothing (StickState.only_one_point_sticks)
     # The new stick goes into the joint b left: merges of a free endpoint of it with the sticks
     # still on that joint (a 1-point stick's two joints constrain each other little, so a link
     # scored anywhere in the tree would go wherever a loose joint fits worst).
