@@ -153,27 +153,34 @@ def test_insert_bridge_with_any_number_of_endpoints(n_ends):
 
 
 # ----------------------------------------------------------------- 2-point hubs (unpair_hubs)
-def _hub_figure(seed: int, frames: int = 120):
-    """A pelvis (5 points) with two one-marker thighs on its end and a 4-point shin below each."""
+def _figure(seed: int, parent: list, lengths: list, attach: list, counts: list, frames: int, *,
+            along: tuple[float, float], spread: float, root_motion: float = 1.0):
+    """A random figure of the given tree: points ``along`` each stick's length, ``spread`` off it."""
     from scipy.spatial.transform import Rotation
 
     from stickfigure.synthetic import FigureSpec, _finish, _forward_kinematics, _smooth_rotvecs
 
     rng = np.random.default_rng(seed)
-    parent = np.array([-1, 0, 0, 1, 2])
-    lengths = np.array([0.6, 1.0, 1.0, 1.0, 1.0])
-    attach = np.array([[0, 0, 0], [0.6, 0, 0.15], [0.6, 0, -0.15], [1.0, 0, 0], [1.0, 0, 0]])
-    counts = np.array([5, 1, 1, 4, 4])
-    labels = np.repeat(np.arange(5), counts)
-    local = np.concatenate([np.c_[rng.uniform(0.2, 0.8, n) * lengths[s], rng.normal(0, 0.2, (n, 2))]
-                            for s, n in enumerate(counts)])
-    spec = FigureSpec(parent=parent, attach=attach, lengths=lengths, local=local, labels=labels)
-    rest = rng.uniform(-np.pi, np.pi, size=(5, 1, 3))
-    motion = _smooth_rotvecs(rng, 5, frames, 0.9, False)
-    motion[0] *= 0.5
-    rel = Rotation.from_rotvec((rest + motion).reshape(-1, 3)).as_matrix().reshape(5, frames, 3, 3)
+    n = len(parent)
+    lengths, counts = np.asarray(lengths, float), np.asarray(counts)
+    labels = np.repeat(np.arange(n), counts)
+    local = np.concatenate([np.c_[rng.uniform(*along, c) * lengths[s], rng.normal(0, spread, (c, 2))]
+                            for s, c in enumerate(counts)])
+    spec = FigureSpec(parent=np.asarray(parent), attach=np.asarray(attach, float), lengths=lengths, local=local,
+                      labels=labels)
+    rest = rng.uniform(-np.pi, np.pi, size=(n, 1, 3))
+    motion = _smooth_rotvecs(rng, n, frames, 0.9, False)
+    motion[0] *= root_motion
+    rel = Rotation.from_rotvec((rest + motion).reshape(-1, 3)).as_matrix().reshape(n, frames, 3, 3)
     pts, joints = _forward_kinematics(spec, rel, np.zeros((frames, 3)))
     return _finish(pts, joints, spec, rng, 0.01, (30.0, 20.0), False, {"generator": "test"}, frame_rate=30.0)
+
+
+def _hub_figure(seed: int, frames: int = 120):
+    """A pelvis (5 points) with two one-marker thighs on its end and a 4-point shin below each."""
+    return _figure(seed, [-1, 0, 0, 1, 2], [0.6, 1.0, 1.0, 1.0, 1.0],
+                   [[0, 0, 0], [0.6, 0, 0.15], [0.6, 0, -0.15], [1.0, 0, 0], [1.0, 0, 0]], [5, 1, 1, 4, 4], frames,
+                   along=(0.2, 0.8), spread=0.2, root_motion=0.5)
 
 
 def _lumped_hub(seed: int):
@@ -317,24 +324,8 @@ def test_no_merge_makes_a_joint_of_one_point_sticks_only():
 
 def _y_figure(seed: int, frames: int = 120):
     """A torso (6 points) with a head (4) on its end and an arm (5) on a shoulder beside it."""
-    from scipy.spatial.transform import Rotation
-
-    from stickfigure.synthetic import FigureSpec, _finish, _forward_kinematics, _smooth_rotvecs
-
-    rng = np.random.default_rng(seed)
-    parent = np.array([-1, 0, 0])
-    lengths = np.array([1.0, 0.5, 1.0])
-    attach = np.array([[0, 0, 0], [1.0, 0, 0], [0.85, 0, 0.35]])
-    counts = np.array([6, 4, 5])
-    labels = np.repeat(np.arange(3), counts)
-    local = np.concatenate([np.c_[rng.uniform(0.1, 0.9, n) * lengths[s], rng.normal(0, 0.15, (n, 2))]
-                            for s, n in enumerate(counts)])
-    spec = FigureSpec(parent=parent, attach=attach, lengths=lengths, local=local, labels=labels)
-    rest = rng.uniform(-np.pi, np.pi, size=(3, 1, 3))
-    motion = _smooth_rotvecs(rng, 3, frames, 0.9, False)
-    rel = Rotation.from_rotvec((rest + motion).reshape(-1, 3)).as_matrix().reshape(3, frames, 3, 3)
-    pts, joints = _forward_kinematics(spec, rel, np.zeros((frames, 3)))
-    return _finish(pts, joints, spec, rng, 0.01, (30.0, 20.0), False, {"generator": "test"}, frame_rate=30.0)
+    return _figure(seed, [-1, 0, 0], [1.0, 0.5, 1.0], [[0, 0, 0], [1.0, 0, 0], [0.85, 0, 0.35]], [6, 4, 5], frames,
+                   along=(0.1, 0.9), spread=0.15)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
