@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import stickfigure as sf
+from _figures import figure as _figure
 from stickfigure.models.em import fit_stages
 from stickfigure.models.em.bridge import (
     bridge_points,
@@ -153,29 +154,6 @@ def test_insert_bridge_with_any_number_of_endpoints(n_ends):
 
 
 # ----------------------------------------------------------------- 2-point hubs (unpair_hubs)
-def _figure(seed: int, parent: list, lengths: list, attach: list, counts: list, frames: int, *,
-            along: tuple[float, float], spread: float, root_motion: float = 1.0):
-    """A random figure of the given tree: points ``along`` each stick's length, ``spread`` off it."""
-    from scipy.spatial.transform import Rotation
-
-    from stickfigure.synthetic import FigureSpec, _finish, _forward_kinematics, _smooth_rotvecs
-
-    rng = np.random.default_rng(seed)
-    n = len(parent)
-    lengths, counts = np.asarray(lengths, float), np.asarray(counts)
-    labels = np.repeat(np.arange(n), counts)
-    local = np.concatenate([np.c_[rng.uniform(*along, c) * lengths[s], rng.normal(0, spread, (c, 2))]
-                            for s, c in enumerate(counts)])
-    spec = FigureSpec(parent=np.asarray(parent), attach=np.asarray(attach, float), lengths=lengths, local=local,
-                      labels=labels)
-    rest = rng.uniform(-np.pi, np.pi, size=(n, 1, 3))
-    motion = _smooth_rotvecs(rng, n, frames, 0.9, False)
-    motion[0] *= root_motion
-    rel = Rotation.from_rotvec((rest + motion).reshape(-1, 3)).as_matrix().reshape(n, frames, 3, 3)
-    pts, joints = _forward_kinematics(spec, rel, np.zeros((frames, 3)))
-    return _finish(pts, joints, spec, rng, 0.01, (30.0, 20.0), False, {"generator": "test"}, frame_rate=30.0)
-
-
 def _hub_figure(seed: int, frames: int = 120):
     """A pelvis (5 points) with two one-marker thighs on its end and a 4-point shin below each."""
     return _figure(seed, [-1, 0, 0, 1, 2], [0.6, 1.0, 1.0, 1.0, 1.0],

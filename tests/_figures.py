@@ -1,0 +1,28 @@
+"""Synthetic figures of a given tree for the tests of em's moves (a helper module, not tests)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def figure(seed: int, parent: list, lengths: list, attach: list, counts: list, frames: int, *,
+           along: tuple[float, float], spread: float, root_motion: float = 1.0):
+    """A random figure of the given tree: points ``along`` each stick's length, ``spread`` off it."""
+    from scipy.spatial.transform import Rotation
+
+    from stickfigure.synthetic import FigureSpec, _finish, _forward_kinematics, _smooth_rotvecs
+
+    rng = np.random.default_rng(seed)
+    n = len(parent)
+    lengths, counts = np.asarray(lengths, float), np.asarray(counts)
+    labels = np.repeat(np.arange(n), counts)
+    local = np.concatenate([np.c_[rng.uniform(*along, c) * lengths[s], rng.normal(0, spread, (c, 2))]
+                            for s, c in enumerate(counts)])
+    spec = FigureSpec(parent=np.asarray(parent), attach=np.asarray(attach, float), lengths=lengths, local=local,
+                      labels=labels)
+    rest = rng.uniform(-np.pi, np.pi, size=(n, 1, 3))
+    motion = _smooth_rotvecs(rng, n, frames, 0.9, False)
+    motion[0] *= root_motion
+    rel = Rotation.from_rotvec((rest + motion).reshape(-1, 3)).as_matrix().reshape(n, frames, 3, 3)
+    pts, joints = _forward_kinematics(spec, rel, np.zeros((frames, 3)))
+    return _finish(pts, joints, spec, rng, 0.01, (30.0, 20.0), False, {"generator": "test"}, frame_rate=30.0)
