@@ -304,7 +304,8 @@ def case_structure_mocap(ctx: Context) -> Iterator[dict[str, Any]]:
             found = sf.fit(sub, method="em", random_state=ctx.seed)
         given, timing = ctx.time(lambda: sf.fit(sub, method="em", random_state=ctx.seed, labels=sub.labels_true,
                                                 refine_sticks=False, resplit=False, dissolve_points=0,
-                                                resample_every=0, unpair=False, bridge_points=0))
+                                                resample_every=0, unpair=False, bridge_points=0,
+                                                split_hubs=False))
         yield {"dataset": f"{name} isometric {rate:g} Hz, marker-set segments given", "method": "em",
                **_score(given, sub), **timing,
                "notes": f"BIC {_selected_bic(given):.0f} against {_selected_bic(found):.0f} for the structure "

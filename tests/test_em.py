@@ -390,6 +390,20 @@ def test_no_second_start_when_every_stick_is_rigid():
     assert _edges(sk, traj) == _true_edges(traj)
 
 
+def test_a_hub_split_in_the_first_search_calls_for_the_second_start(monkeypatch):
+    # A stick that split_hubs had to split was not rigid when the search left it, though the
+    # final state fits: the finer start is searched as for a misfit. The same rigid figure as
+    # above, with a split reported (the state left as it was).
+    from stickfigure.models.em import refine
+
+    monkeypatch.setattr(refine, "split_hubs", lambda st, obs, priors, settings, rng, value, crit: (st, value, 0, [0]))
+    traj = _benchmark_figure(4)
+    sk = sf.fit(traj, method="em", random_state=4, n_jobs=1)
+    assert sk.info["first_start_hub_split"] is True and sk.info["first_start_misfit"] <= 1.35
+    assert len(sk.info["starts"]) == 2
+    assert any(s["hubs"] == [0] for s in sk.info["stages"])
+
+
 def test_noiseless_figure_is_not_oversegmented():
     # Known answer on noiseless data: every stick's residual is the residue the truncated EM
     # leaves, different from stick to stick. With the noise variance floored at 1e-300 and
@@ -1104,7 +1118,7 @@ def test_retry_mid_air_searches_again_and_keeps_the_skeleton_with_the_nearer_joi
 
 # The options that keep given groups as the sticks (the ``labels`` docstring names them).
 KEEP_GROUPS = dict(refine_sticks=False, resample_every=0, resplit=False, dissolve_points=0, unpair=False,
-                   bridge_points=0)
+                   bridge_points=0, split_hubs=False)
 
 
 def test_given_labels_are_kept_with_every_group_move_off():

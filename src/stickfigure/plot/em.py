@@ -80,7 +80,7 @@ def _stick_lines(stage: dict, pts: np.ndarray | None) -> tuple[list[np.ndarray],
 def stage_kind(stage: dict, index: int) -> str:
     """What made a stage (for titles): the first EM run, a merge, or one of the moves after the
     search (re-split pairs, dissolved sticks, the held-out check, trees joined to ``max_trees``,
-    pairs parted, bridges, sub-tree moves; docs/em.md section 6)."""
+    pairs parted, bridges, hubs split, sub-tree moves; docs/em.md section 6)."""
     if stage.get("merged") is not None:
         return "merge"
     if stage.get("joined"):
@@ -89,6 +89,8 @@ def stage_kind(stage: dict, index: int) -> str:
         return "bridges"
     if stage.get("unpaired"):
         return "pairs parted"
+    if stage.get("hubs"):
+        return "hubs split"
     if stage.get("reattached"):
         return "sub-tree moves"
     if stage.get("heldout"):

@@ -102,10 +102,11 @@ class EMSkeleton(StickEstimator):
     labels : array_like of int, shape (P,), optional
         Initial groups of the points instead of Affinity Propagation. The search may
         still change them: resampling, the stick check and articulated splits, the
-        pair re-split, the dissolutions (and the held-out check), ``unpair`` and the
-        bridges each can. To keep them as the sticks, pass ``refine_sticks=False,
-        resample_every=0, resplit=False, dissolve_points=0, unpair=False,
-        bridge_points=0`` (only the joints are then searched).
+        pair re-split, the dissolutions (and the held-out check), ``unpair``, the
+        bridges and ``split_hubs`` each can. To keep them as the sticks, pass
+        ``refine_sticks=False, resample_every=0, resplit=False, dissolve_points=0,
+        unpair=False, bridge_points=0, split_hubs=False`` (only the joints are then
+        searched).
     refine_sticks : bool
         After the first EM run, split sticks that are not rigid and join sticks that
         move as one, by BIC (an extension: the paper keeps the clustering's count).
@@ -208,6 +209,15 @@ class EMSkeleton(StickEstimator):
         marker, the knee marker going with the shin) otherwise bends whatever
         stick it lands on, as a free 1-point stick cannot survive
         (:mod:`.bridge`, docs/em.md section 6). 0: off.
+    split_hubs : bool
+        Then the articulated split test on sticks whose endpoints are all on joints
+        (which the rounds above leave out), with both pieces of at least
+        ``min_stick_points`` points; a passing split is put in with each joint on
+        the piece nearer to it, and kept when the selection criterion improves
+        after EM. A torso stick of pelvis and thorax markers twists in a walk, and
+        a shoulder joint in its frame fits worse than one in the head's, which
+        then takes the arm (:func:`.refine.split_hubs`, docs/em.md section 6).
+        False: off.
     reattach : bool
         Finally, sub-tree moves: a joint is cut where a part of the tree has a
         clearly better least-squares joint with a stick on the other side (residual
@@ -267,11 +277,11 @@ class EMSkeleton(StickEstimator):
         (docs/em.md section 6). None searches on every frame (the paper).
     oversegment : float, optional
         When the search leaves a stick that is not rigid (residual variance above
-        1.35 times the noise level) or sticks of more than 10 points on
-        average, run it again from a finer initial clustering
+        1.35 times the noise level, or split by ``split_hubs``) or sticks of more
+        than 10 points on average, run it again from a finer initial clustering
         with ``ceil(P / oversegment)`` groups (at most ``max_sticks``; only when that
         is more than the estimated count and than the sticks the first search
-        ended with) and keep the start whose selected stage has the higher BIC
+        ended with, not counting those ``split_hubs`` added) and keep the start whose selected stage has the higher BIC
         (docs/em.md section 6). The eigengap count of the affine
         rigidity affinity merges body segments of 1-3 markers (an affine body fits
         any four trajectories), which no later move splits apart again. None: one
@@ -322,7 +332,7 @@ class EMSkeleton(StickEstimator):
                  holdout: float | None = 0.15, holdout_masks: int = 1, holdout_points: int = 2,
                  dissolve_scope: str = "all",
                  remerge: bool = True, split_dissolved: int = 4,
-                 unpair: bool = True, bridge_points: int = 2, reattach: bool = True,
+                 unpair: bool = True, bridge_points: int = 2, split_hubs: bool = True, reattach: bool = True,
                  max_trees: int | str | None = "auto", retry_mid_air: float | None = None,
                  merge_rank: str = "residual", align_mirrors: bool = True,
                  max_frames: int | None = 400, oversegment: float | None = 3.5, n_jobs: int | None = None,
@@ -361,6 +371,7 @@ class EMSkeleton(StickEstimator):
         self.split_dissolved = split_dissolved
         self.unpair = unpair
         self.bridge_points = bridge_points
+        self.split_hubs = split_hubs
         self.reattach = reattach
         self.max_trees = max_trees
         self.retry_mid_air = retry_mid_air
@@ -406,7 +417,7 @@ class EMSkeleton(StickEstimator):
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(map(repr, allowed))}, got {getattr(self, name)!r}")
-        for name in ("impute_joint_ends", "impute_rotation_prior", "unpair"):
+        for name in ("impute_joint_ends", "impute_rotation_prior", "unpair", "split_hubs"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
         if isinstance(self.max_trees, (str, bool)) and self.max_trees != "auto":
@@ -448,7 +459,8 @@ class EMSkeleton(StickEstimator):
                               dissolve_scope=str(self.dissolve_scope),
                               remerge=bool(self.remerge), split_dissolved=int(self.split_dissolved),
                               unpair=bool(self.unpair),
-                              bridge_points=int(self.bridge_points), reattach=bool(self.reattach),
+                              bridge_points=int(self.bridge_points), split_hubs=bool(self.split_hubs),
+                              reattach=bool(self.reattach),
                               max_trees=None if self.max_trees in (None, "auto") else int(self.max_trees),
                               endpoint_init=self.endpoint_init, n_ends=int(self.n_ends),
                               merge_rank=str(self.merge_rank), align_mirrors=bool(self.align_mirrors))
@@ -637,11 +649,15 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
             # stick fitting at the noise level means the clustering found the parts.
             # With a few large sticks the noise level (lower quartile over sticks) is itself
             # inflated, so more than OVERSEGMENT_SIZE points per stick also qualify.
+            # A stick split by split_hubs was not rigid when the search left it: that counts too,
+            # and the stick it added is not one the search found.
             worst = float(misfit_ratios(stages[selected].state, obs, priors).max())
             info0["first_start_misfit"] = worst
-            n_first = int(stages[selected].labels.max()) + 1
+            hubs = sum(len(s.hubs) for s in stages)
+            info0["first_start_hub_split"] = hubs > 0
+            n_first = int(stages[selected].labels.max()) + 1 - hubs
             # A start is only finer if it has more groups than the first search ended with sticks.
-            if (worst > OVERSEGMENT_MISFIT or P > OVERSEGMENT_SIZE * n_first) and fine > n_first:
+            if (worst > OVERSEGMENT_MISFIT or P > OVERSEGMENT_SIZE * n_first or hubs) and fine > n_first:
                 runs.append(second.result())
                 info0["second_start_parallel"] = second.forked
     # Starts are compared by BIC whatever the selection: the objective has no charge for the
@@ -761,6 +777,7 @@ def _skeleton(stages: list[Stage], selected: int, norm: tuple[np.ndarray, float]
             "joined": s.joined,
             "bridged": s.bridged,
             "unpaired": s.unpaired,
+            "hubs": s.hubs,
             "ends_xy": (s.ends_xy * scale + centre).tolist(), "joints_xy": (s.joints_xy * scale + centre).tolist(),
         } for s in stages],
         "objective_stage": int(np.argmax([s.objective for s in stages])),

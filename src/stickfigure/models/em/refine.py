@@ -250,7 +250,7 @@ def _split_block(st: StickState, obs: Observations, s: int, second: np.ndarray,
 def articulated_split_candidates(st: StickState, obs: Observations, priors: Priors, *, n_sweeps: int = 40,
                                  n_finalists: int = 5, max_frames: int = 240, skip: set[int] | None = None,
                                  var: float | None = None, return_gain: bool = False,
-                                 n_axes: int = 1, n_jobs: int = 1) -> list[tuple]:
+                                 n_axes: int = 1, n_jobs: int = 1, min_piece: int = 1) -> list[tuple]:
     """Sticks that are two parts joined by a joint: [(stick, 0/1 labels of its points)].
 
     The split check above needs two rigid halves of at least four points each
@@ -271,7 +271,7 @@ def articulated_split_candidates(st: StickState, obs: Observations, priors: Prio
     ``var``: the noise variance ``sigma^2`` (default: :func:`noise_variance` of ``st``).
     ``return_gain``: also return each split's gain ``(RSS_one - RSS_two) / (2 sigma^2)``.
     ``n_jobs`` > 1: half of the candidates are fitted in a forked child (:func:`.forked.in_halves`;
-    the same numbers).
+    the same numbers). ``min_piece``: only cuts whose two pieces hold at least this many points.
     """
     from .forked import in_halves
     from .structure import _union
@@ -312,6 +312,8 @@ def articulated_split_candidates(st: StickState, obs: Observations, priors: Prio
         if rest / (2.0 * var) - dof[s] / 2.0 < penalty_of(idx.size):
             continue
         for second in _axis_bipartitions(st.local[idx], n_axes=n_axes):
+            if min(int(second.sum()), int((~second).sum())) < min_piece:
+                continue
             blocks.append(_split_block(sub, sobs, s, second, priors))
             owners.append((s, second))
     if not blocks:
@@ -368,6 +370,30 @@ def free_end_sticks(st: StickState) -> np.ndarray:
     return (st.vertex_counts()[st.vertex_of] == 1).reshape(st.n_sticks, st.ends_per_stick).any(axis=1)
 
 
+def _pieces(st: StickState, s: int, second: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The point indices of stick ``s``'s two pieces A and B (``second``: True for B, in label order)."""
+    idx = np.flatnonzero(st.labels == s)
+    return idx[~second.astype(bool)], idx[second.astype(bool)]
+
+
+def _joints_to_second(st: StickState, s: int, local_a: np.ndarray, local_b: np.ndarray) -> list[int]:
+    """Which of stick ``s``'s endpoints on a joint go with piece B when it is split (slots 0..E-1).
+
+    Those nearer to B's points than to A's (local coordinates of the pieces'
+    points, shapes (n_a, 3) and (n_b, 3)), in slot order, at most E - 1 of them:
+    B keeps one endpoint for its joint with A.
+    """
+    E = st.ends_per_stick
+    cnt = st.vertex_counts()
+    out = []
+    for e in range(E):
+        if cnt[st.vertex_of[E * s + e]] > 1:
+            k = st.ends[E * s + e]
+            if np.min(np.linalg.norm(local_b - k, axis=1)) < np.min(np.linalg.norm(local_a - k, axis=1)):
+                out.append(e)
+    return out[:E - 1]
+
+
 def apply_articulated_splits(st: StickState, obs: Observations, priors: Priors,
                              splits: list[tuple[int, np.ndarray]], *, n_sweeps: int = 40) -> StickState:
     """The model with every split stick replaced by two sticks joined at a new vertex.
@@ -375,12 +401,14 @@ def apply_articulated_splits(st: StickState, obs: Observations, priors: Priors,
     Each split is fitted on all frames as in :func:`articulated_split_candidates`
     (the two pieces and their joint, batched), then put into the model: piece A
     keeps the stick's index and endpoints, piece B becomes a new stick whose
-    first endpoint shares the joint's vertex with a free endpoint of A (a stick
-    without a free endpoint is not split). An endpoint of the old stick already
-    in a joint moves to B when B's points are nearer to it than A's (and B
-    has a free slot). The new stick's other endpoints start free, along its
-    principal axis. Everything else is unchanged; the EM run that follows
-    re-optimises the whole model.
+    first endpoint shares the joint's vertex with a free endpoint of A. An
+    endpoint of the old stick already in a joint moves to B when B's points are
+    nearer to it than A's (and B has a free slot); A's endpoint left behind is
+    free. A stick whose endpoints are all on joints is split only when one of
+    them moves to B (:func:`split_hubs`); otherwise it is left as it was. The
+    new stick's other endpoints start free, along its principal axis.
+    Everything else is unchanged; the EM run that follows re-optimises the
+    whole model.
     """
     from .initialise import end_positions
     from .structure import _union
@@ -390,7 +418,13 @@ def apply_articulated_splits(st: StickState, obs: Observations, priors: Priors,
     F, D = st.n_frames, st.n_dims
     cnt = st.vertex_counts()
     free = free_end_sticks(st)
-    ok = [(s, h) for s, h in splits if free[s]]
+    # A stick with every endpoint on a joint can be split only if one of them moves to B.
+
+    def placeable(s: int, h: np.ndarray) -> bool:
+        a, b = _pieces(st, s, h)
+        return bool(free[s] or _joints_to_second(st, s, st.local[a], st.local[b]))
+
+    ok = [(s, h) for s, h in splits if placeable(s, h)]
     if not ok:
         return st
     blocks = [_split_block(st, obs, s, h.astype(bool), priors) for s, h in ok]
@@ -412,31 +446,28 @@ def apply_articulated_splits(st: StickState, obs: Observations, priors: Priors,
         n_pts = pts.size
         blk_local = u.local[po:po + n_pts]
         po += n_pts
+        n_a = int((~second).sum())
+        to_b = _joints_to_second(st, s, blk_local[:n_a], blk_local[n_a:])
+        if not free[s] and not to_b:
+            continue  # the fitted pieces moved no joint to B: A has no endpoint for their joint
         local[pts] = blk_local
         new = len(rot)
         labels[idx[second]] = new
         rot[s], trans[s] = u.rot[2 * b], u.trans[2 * b]
         rot.append(u.rot[2 * b + 1])
         trans.append(u.trans[2 * b + 1])
-        lb = blk_local[(~second).sum():]
-        la = blk_local[:(~second).sum()]
+        lb = blk_local[n_a:]
         b_ends = list(end_positions(lb, np.zeros(lb.shape[0], np.int64), 1, E))
         b_verts: list[int] = [-1] * E
-        b_free = list(range(1, E))
         # Joints the old stick already had: keep each on the piece whose points are nearer.
-        for e in range(E):
-            j = verts[s][e]
-            if cnt[j] > 1 and b_free:
-                k = ends[s][e]
-                if np.min(np.linalg.norm(lb - k, axis=1)) < np.min(np.linalg.norm(la - k, axis=1)):
-                    slot = b_free.pop(0)
-                    b_ends[slot], b_verts[slot] = k, j
-                    # A gets a fresh free vertex in that endpoint's place.
-                    verts[s][e] = len(mu_v)
-                    mu_v.append(np.zeros((F, D)))
-                    tau_v.append(np.ones(F))
-                    alpha.append(1.0)
-                    beta.append(1.0)
+        for slot, e in enumerate(to_b, start=1):
+            b_ends[slot], b_verts[slot] = ends[s][e], verts[s][e]
+            # A gets a fresh free vertex in that endpoint's place.
+            verts[s][e] = len(mu_v)
+            mu_v.append(np.zeros((F, D)))
+            tau_v.append(np.ones(F))
+            alpha.append(1.0)
+            beta.append(1.0)
         free_a = [e for e in range(E) if (cnt[verts[s][e]] if verts[s][e] < cnt.size else 1) == 1]
         ea = min(free_a, key=lambda e: verts[s][e] >= st.n_vertices)  # an original free vertex first
         j = verts[s][ea]
@@ -859,6 +890,56 @@ def articulated_split_round(st: StickState, obs: Observations, priors: Priors, s
     new, val, sweeps = run_em(new, obs, priors, settings, settings.n_iter, rng)
     return new, val, sweeps, [int(s) for s, _ in splits]
 
+
+
+def split_hubs(st: StickState, obs: Observations, priors: Priors, settings, rng: np.random.Generator,
+               value: float, criterion: Callable[[StickState, float], float]
+               ) -> tuple[StickState, float, int, list[int]]:
+    """Articulated splits of sticks whose endpoints are all on joints, each kept when ``criterion`` improves.
+
+    :func:`articulated_split_round` leaves such a stick alone: its new piece has no
+    free endpoint to hang on. On CMU walks the torso is often one stick of pelvis and
+    thorax markers (they move nearly as one) holding both hips and the shoulders. The
+    pelvis turns against the thorax in every stride, so the stick's frame is a
+    compromise, and a shoulder joint fixed in it fits worse than one fixed in the
+    head, which follows the thorax: the arm ends up on the head (CMU 85_02 from
+    32000/6: the joint residual of the upper-arm marker with the torso stick is 640
+    times that with the head; docs/em.md section 11).
+
+    Here such a stick is tested as the other sticks are
+    (:func:`articulated_split_candidates`), with both pieces of at least
+    ``settings.min_stick_points`` points: a piece that takes over joints must be a
+    rigid body of its own (a single marker that bends a stick is a bridge's business,
+    :mod:`.bridge`). A passing split is put in with each old joint on the piece whose
+    points are nearer to it (:func:`apply_articulated_splits`), which is possible
+    when at least one joint goes to the new piece; the model is refitted by EM and
+    kept when the criterion improves. Candidates are tried once, best gain first.
+
+    Returns the state, its objective, the EM sweeps run and the sticks split
+    (numbers of the state each was split in).
+    """
+    from .structure import out_of_reach, run_em
+
+    m = int(settings.min_stick_points)
+    sizes = np.bincount(st.labels, minlength=st.n_sticks)
+    skip = set(np.flatnonzero((sizes < 2 * m) | free_end_sticks(st)).tolist())
+    if len(skip) == st.n_sticks:
+        return st, value, 0, []
+    found = articulated_split_candidates(st, obs, priors, n_axes=settings.split_axes, skip=skip,
+                                         n_jobs=settings.n_jobs, min_piece=m, return_gain=True)
+    best = criterion(st, value)
+    sweeps, done = 0, []
+    for s, halves, _ in sorted(found, key=lambda x: -x[2]):
+        trial = apply_articulated_splits(st, obs, priors, [(s, halves)])
+        if trial.n_sticks == st.n_sticks:
+            continue  # no joint went to the new piece
+        trial, val, n = run_em(trial, obs, priors, settings, settings.n_iter, rng, stop=out_of_reach(best, criterion))
+        sweeps += n
+        score = criterion(trial, val)
+        if score > best:
+            st, value, best = trial, val, score
+            done.append(int(s))
+    return st, value, sweeps, done
 
 # ----------------------------------------------------------------- moving groups of points
 def misfit_ratios(st: StickState, obs: Observations, priors: Priors) -> np.ndarray:

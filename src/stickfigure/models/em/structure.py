@@ -112,6 +112,7 @@ class EMSettings:
     split_dissolved: int = 4
     unpair: bool = True
     bridge_points: int = 2
+    split_hubs: bool = True
     reattach: bool = True
     max_trees: int | None = None
     merge_rank: str = "residual"
@@ -960,6 +961,7 @@ class Stage:
     joined: list = field(default_factory=list)  # stick pairs joined to reach max_trees (tree.join_trees)
     bridged: list = field(default_factory=list)  # points made sticks between two sticks (bridge.bridge_points)
     unpaired: list = field(default_factory=list)  # point pairs made two sticks (bridge.unpair_hubs)
+    hubs: list = field(default_factory=list)  # sticks on joints only split in two (refine.split_hubs)
 
 
 def _stage(st: StickState, obs: Observations, value: float, merged: tuple[int, int] | None, sweeps: int,
@@ -1187,6 +1189,16 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
         cur, val, n, bridged = bridge_points(cur.copy(), obs, priors, settings, rng, stages[at].objective,
                                              criterion, settings.bridge_points)
         keep_stage(cur, val, n, "bridged", bridged)
+    if settings.split_hubs:
+        # A stick on joints only that is two parts (a torso of pelvis and thorax markers, which
+        # twist against each other in a walk) split in two, each joint on its piece
+        # (refine.split_hubs); before the sub-tree moves, which can then re-hang a part on the
+        # piece that fits its joint.
+        from .refine import split_hubs
+
+        _, at, cur = best[selection]
+        cur, val, n, hubs = split_hubs(cur.copy(), obs, priors, settings, rng, stages[at].objective, criterion)
+        keep_stage(cur, val, n, "hubs", hubs)
     if settings.reattach:
         # Sub-tree moves (tree.py): the greedy search never undoes a merge, and a contracted
         # stick links its two neighbours whatever they are; a part hanging from the wrong stick
