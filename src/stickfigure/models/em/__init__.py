@@ -281,11 +281,11 @@ class EMSkeleton(StickEstimator):
         than 10 points on average, run it again from a finer initial clustering
         with ``ceil(P / oversegment)`` groups (at most ``max_sticks``; only when that
         is more than the estimated count and than the sticks the first search
-        ended with, not counting those ``split_hubs`` added) and keep the start whose selected stage has the higher BIC
-        (docs/em.md section 6). The eigengap count of the affine
-        rigidity affinity merges body segments of 1-3 markers (an affine body fits
-        any four trajectories), which no later move splits apart again. None: one
-        start (the paper).
+        ended with, not counting those ``split_hubs`` added) and keep the start
+        whose selected stage has the higher BIC (docs/em.md section 6). The
+        eigengap count of the affine rigidity affinity merges body segments of 1-3
+        markers (an affine body fits any four trajectories), which no later move
+        splits apart again. None: one start (the paper).
     n_jobs : int, optional
         Processes for the search. With more than one (Linux, forked processes):
         the finer start's search runs beside the first one, at a lower priority, and

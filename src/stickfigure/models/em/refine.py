@@ -418,9 +418,9 @@ def apply_articulated_splits(st: StickState, obs: Observations, priors: Priors,
     F, D = st.n_frames, st.n_dims
     cnt = st.vertex_counts()
     free = free_end_sticks(st)
-    # A stick with every endpoint on a joint can be split only if one of them moves to B.
 
     def placeable(s: int, h: np.ndarray) -> bool:
+        # A stick with every endpoint on a joint can be split only if one of them moves to B.
         a, b = _pieces(st, s, h)
         return bool(free[s] or _joints_to_second(st, s, st.local[a], st.local[b]))
 
@@ -891,7 +891,6 @@ def articulated_split_round(st: StickState, obs: Observations, priors: Priors, s
     return new, val, sweeps, [int(s) for s, _ in splits]
 
 
-
 def split_hubs(st: StickState, obs: Observations, priors: Priors, settings, rng: np.random.Generator,
                value: float, criterion: Callable[[StickState, float], float]
                ) -> tuple[StickState, float, int, list[int]]:
@@ -929,7 +928,10 @@ def split_hubs(st: StickState, obs: Observations, priors: Priors, settings, rng:
                                          n_jobs=settings.n_jobs, min_piece=m, return_gain=True)
     best = criterion(st, value)
     sweeps, done = 0, []
+    members = {s: np.flatnonzero(st.labels == s) for s, _, _ in found}
     for s, halves, _ in sorted(found, key=lambda x: -x[2]):
+        if not np.array_equal(np.flatnonzero(st.labels == s), members[s]):
+            continue  # a kept split's EM run moved points of this stick: its cut is of another stick
         trial = apply_articulated_splits(st, obs, priors, [(s, halves)])
         if trial.n_sticks == st.n_sticks:
             continue  # no joint went to the new piece
@@ -940,6 +942,7 @@ def split_hubs(st: StickState, obs: Observations, priors: Priors, settings, rng:
             st, value, best = trial, val, score
             done.append(int(s))
     return st, value, sweeps, done
+
 
 # ----------------------------------------------------------------- moving groups of points
 def misfit_ratios(st: StickState, obs: Observations, priors: Priors) -> np.ndarray:
