@@ -26,3 +26,27 @@ def figure(seed: int, parent: list, lengths: list, attach: list, counts: list, f
     rel = Rotation.from_rotvec((rest + motion).reshape(-1, 3)).as_matrix().reshape(n, frames, 3, 3)
     pts, joints = _forward_kinematics(spec, rel, np.zeros((frames, 3)))
     return _finish(pts, joints, spec, rng, 0.01, (30.0, 20.0), False, {"generator": "test"}, frame_rate=30.0)
+
+
+def jointed(traj, labels, pairs):
+    """EM from ``labels`` (3 ends a stick), then each stick pair in ``pairs`` merged at its best joint."""
+    from dataclasses import replace
+
+    from stickfigure.models.em.initialise import initial_state
+    from stickfigure.models.em.model import Priors, normalise
+    from stickfigure.models.em.structure import EMSettings, apply_merge, merge_candidates, run_em, score_candidates
+
+    obs, _, _ = normalise(traj.xy)
+    settings, priors = EMSettings(n_iter=100, resample_every=0), Priors()
+    rng = np.random.default_rng(0)
+    st, value, _ = run_em(initial_state(obs, labels, int(labels.max()) + 1, priors, rng, n_ends=3), obs, priors,
+                          settings, 100, rng)
+    E = st.ends_per_stick
+    for pair in pairs:
+        cands = [c for c in merge_candidates(st, replace(settings, max_candidates=None))
+                 if set((c.ends // E).tolist()) == pair]
+        blocks = score_candidates(st, obs, priors, settings, cands, rng)
+        b = int(np.argmax([c.score for c in cands]))
+        st = apply_merge(st, cands[b], priors, settings, blocks[b])
+        st, value, _ = run_em(st, obs, priors, settings, 100, rng)
+    return st, value, obs, settings, priors

@@ -6,9 +6,10 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from _figures import figure as _figure
+from _figures import jointed
 
 import stickfigure as sf
-from _figures import figure as _figure
 from stickfigure.models.em import fit_stages
 from stickfigure.models.em.bridge import (
     bridge_points,
@@ -164,23 +165,10 @@ def _hub_figure(seed: int, frames: int = 120):
 def _lumped_hub(seed: int):
     """The hub figure with the two thigh markers on one stick, joined to the pelvis and both shins
     (the state CMU 85_02 left: LTHI+RTHI between the pelvis and the legs)."""
-    from stickfigure.models.em.initialise import initial_state
-
     traj = _hub_figure(seed)
     lab = traj.labels_true
     wrong = np.where(lab == 2, 1, np.where(lab > 2, lab - 1, lab))
-    obs, _, _ = normalise(traj.xy)
-    settings, priors = EMSettings(n_iter=100, resample_every=0), Priors()
-    rng = np.random.default_rng(0)
-    st, _, _ = run_em(initial_state(obs, wrong, 4, priors, rng, n_ends=3), obs, priors, settings, 100, rng)
-    E = st.ends_per_stick
-    for pair in ({0, 1}, {1, 2}, {1, 3}):
-        cands = [c for c in merge_candidates(st, replace(settings, max_candidates=None))
-                 if set((c.ends // E).tolist()) == pair]
-        blocks = score_candidates(st, obs, priors, settings, cands, rng)
-        b = int(np.argmax([c.score for c in cands]))
-        st = apply_merge(st, cands[b], priors, settings, blocks[b])
-        st, value, _ = run_em(st, obs, priors, settings, 100, rng)
+    st, value, obs, settings, priors = jointed(traj, wrong, [{0, 1}, {1, 2}, {1, 3}])
     return traj, st, value, obs, settings, priors
 
 

@@ -2,25 +2,13 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
-from _figures import figure
+from _figures import figure, jointed
 
 from stickfigure.metrics import adjusted_rand_index
-from stickfigure.models.em.initialise import initial_state
-from stickfigure.models.em.model import Priors, normalise
 from stickfigure.models.em.refine import apply_articulated_splits, split_hubs
-from stickfigure.models.em.structure import (
-    EMSettings,
-    apply_merge,
-    bic,
-    merge_candidates,
-    run_em,
-    score_candidates,
-    stick_edges,
-)
+from stickfigure.models.em.structure import bic, stick_edges
 
 
 def _trunk_figure(seed: int, frames: int = 120):
@@ -28,24 +16,6 @@ def _trunk_figure(seed: int, frames: int = 120):
     return figure(seed, [-1, 0, 0, 1, 1], [0.8, 0.8, 1.2, 1.0, 0.5],
                   [[0, 0, 0], [0.8, 0, 0], [0.0, 0, 0.3], [0.8, 0, 0.35], [0.8, 0, -0.1]], [4, 4, 5, 5, 4],
                   frames, along=(0.1, 0.9), spread=0.15, root_motion=0.5)
-
-
-def _jointed(traj, labels, pairs):
-    """EM from ``labels`` (3 ends a stick), then each stick pair in ``pairs`` merged at its best joint."""
-    obs, _, _ = normalise(traj.xy)
-    settings, priors = EMSettings(n_iter=100, resample_every=0), Priors()
-    rng = np.random.default_rng(0)
-    st, value, _ = run_em(initial_state(obs, labels, int(labels.max()) + 1, priors, rng, n_ends=3), obs, priors,
-                          settings, 100, rng)
-    E = st.ends_per_stick
-    for pair in pairs:
-        cands = [c for c in merge_candidates(st, replace(settings, max_candidates=None))
-                 if set((c.ends // E).tolist()) == pair]
-        blocks = score_candidates(st, obs, priors, settings, cands, rng)
-        b = int(np.argmax([c.score for c in cands]))
-        st = apply_merge(st, cands[b], priors, settings, blocks[b])
-        st, value, _ = run_em(st, obs, priors, settings, 100, rng)
-    return st, value, obs, settings, priors
 
 
 def _tree(st, labels_true):
@@ -62,7 +32,7 @@ def test_a_hub_of_two_parts_is_split_with_each_joint_on_its_part(seed):
     traj = _trunk_figure(seed)
     T = traj.labels_true
     lumped = np.where(T == 1, 0, np.where(T > 1, T - 1, T))  # thorax on the pelvis's stick
-    st, value, obs, settings, priors = _jointed(traj, lumped, [{0, 1}, {0, 2}, {0, 3}])
+    st, value, obs, settings, priors = jointed(traj, lumped, [{0, 1}, {0, 2}, {0, 3}])
     assert not (st.vertex_counts()[st.vertex_of[:3]] == 1).any()  # the hub has no free endpoint
     crit = lambda s, v: bic(s, obs, v)  # noqa: E731
     new, val, _, split = split_hubs(st, obs, priors, settings, np.random.default_rng(0), value, crit)
@@ -77,7 +47,7 @@ def test_a_rigid_hub_is_left_alone():
     # No stick bends, so nothing is split, whatever its joints.
     traj = _trunk_figure(0)
     T = traj.labels_true
-    st, value, obs, settings, priors = _jointed(traj, T, [{0, 1}, {0, 2}, {1, 3}, {1, 4}])
+    st, value, obs, settings, priors = jointed(traj, T, [{0, 1}, {0, 2}, {1, 3}, {1, 4}])
     crit = lambda s, v: bic(s, obs, v)  # noqa: E731
     new, val, sweeps, split = split_hubs(st, obs, priors, settings, np.random.default_rng(0), value, crit)
     assert split == [] and sweeps == 0 and new is st
@@ -89,7 +59,7 @@ def test_a_hub_keeping_all_its_joints_on_one_piece_is_not_split():
     traj = _trunk_figure(0)
     T = traj.labels_true
     lumped = np.where(T == 1, 0, np.where(T > 1, T - 1, T))
-    st, value, obs, settings, priors = _jointed(traj, lumped, [{0, 1}, {0, 2}, {0, 3}])
+    st, value, obs, settings, priors = jointed(traj, lumped, [{0, 1}, {0, 2}, {0, 3}])
     idx = np.flatnonzero(st.labels == 0)
     far = np.argsort(-np.min(np.linalg.norm(st.local[idx][:, None] - st.ends[None, :3], axis=-1), axis=1))[:1]
     second = np.zeros(idx.size, bool)
