@@ -54,6 +54,13 @@ em-structure-cmu41-virtual
     the whole take at 120 Hz, isometric, side, front and 4 random views (12 with
     ``ctx.full``). The markers are rigid on their bones, so a failure here is not skin
     motion. A summary row counts the body trees.
+em-structure-mocap-clips
+    Clips, not whole takes: the CMU take and the placed 131_01 take each cut into three
+    consecutive clips of a third of their frames (120 Hz), every clip seen from the same
+    2 random cameras (4 with ``ctx.full``), so that a row differs from its take's others
+    by the clip alone. Each row gives the clip's articulation (the RMS distance of its 3D
+    markers from their best rigid fit, in figure radii: how much the figure bends, not
+    how far it goes); a summary row per take counts the body trees.
 em-structure-hopkins
     Real video feature tracks (Hopkins 155, every sequence in the data directory):
     sticks found, and how well they respect the independent motions the dataset
@@ -409,6 +416,64 @@ def case_structure_cmu41_virtual(ctx: Context) -> Iterator[dict[str, Any]]:
     yield _body_tree_summary("131_01.bvh, CMU 41 markers placed", f"{len(views)} views", rows)
 
 
+def articulation(X: np.ndarray) -> float:
+    """How much a 3D clip moves other than as one rigid body, in figure radii.
+
+    Parameters
+    ----------
+    X : ndarray, shape (P, F, 3)
+        The clip's 3D points; a point missing in any frame is left out.
+
+    Returns
+    -------
+    float
+        The RMS distance of the points from their mean shape rigidly aligned to each
+        frame (generalised Procrustes: Kabsch rotations, three passes), divided by the
+        figure's radius (the RMS distance of the mean shape's points from its centroid).
+        0 for a rigid figure, whatever its path.
+    """
+    X = np.asarray(X, float)
+    if X.ndim != 3 or X.shape[2] != 3:
+        raise ValueError(f"X must have shape (P, F, 3); got {X.shape}")
+    X = X[np.isfinite(X).all(axis=(1, 2))]
+    if X.shape[0] < 3:
+        raise ValueError("articulation needs at least 3 points seen in every frame")
+    Y = np.transpose(X, (1, 0, 2))  # (F, P, 3)
+    Y = Y - Y.mean(axis=1, keepdims=True)
+    ref = Y[0]
+    for _ in range(3):
+        # Rotations taking the reference onto each frame: R = U diag(1, 1, det) V^T of ref^T Y.
+        U, _, Vt = np.linalg.svd(np.einsum("pi,fpj->fij", ref, Y))
+        d = np.sign(np.linalg.det(U @ Vt))
+        U[:, :, 2] *= d[:, None]
+        R = U @ Vt  # (F, 3, 3): ref @ R[f] fits frame f
+        fit = np.einsum("pi,fij->fpj", ref, R)
+        ref = np.einsum("fpj,fij->pi", Y, R) / Y.shape[0]  # frames rotated back, averaged
+    radius = np.sqrt(np.mean(np.sum(ref * ref, axis=1)))
+    return float(np.sqrt(np.mean(np.sum((Y - fit) ** 2, axis=2))) / radius)
+
+
+def case_structure_mocap_clips(ctx: Context) -> Iterator[dict[str, Any]]:
+    assert ctx.data_dir is not None
+    takes = [(name, take) for name, take in _whole_takes(ctx) if take.n_frames >= 540]
+    path = Path(ctx.data_dir) / "mocap" / "131_01.bvh"
+    if path.exists():
+        takes.append(("131_01.bvh, CMU 41 markers placed", sf.load(path, marker_set="cmu41")))
+    views = _random_views(ctx, 4 if ctx.full else 2)
+    for name, take in takes:
+        rows = []
+        cuts = np.linspace(0, take.n_frames, 4).round().astype(int)
+        for a, b in zip(cuts[:-1], cuts[1:]):
+            clip = take.slice(frames=slice(int(a), int(b)))
+            bend = articulation(clip.xy)
+            for view in views:
+                row = _view_row(ctx, f"{name}, frames {a}-{b},", clip, view)
+                row["notes"] = f"articulation {bend:.3f} radii; " + row["notes"]
+                rows.append(row)
+                yield row
+        yield _body_tree_summary(name, f"3 clips x {len(views)} random views", rows)
+
+
 def case_structure_hopkins(ctx: Context) -> Iterator[dict[str, Any]]:
     from sklearn.metrics import homogeneity_score
 
@@ -510,6 +575,7 @@ CASES = [
     Case("em-structure-mocap-random-views", case_structure_mocap_random_views, needs_data=True),
     Case("em-structure-mocap-occluded", case_structure_mocap_occluded, needs_data=True),
     Case("em-structure-cmu41-virtual", case_structure_cmu41_virtual, needs_data=True),
+    Case("em-structure-mocap-clips", case_structure_mocap_clips, needs_data=True),
     Case("em-structure-hopkins", case_structure_hopkins, needs_data=True),
     Case("em-speed", case_speed),
     Case("em-time-spread", case_time_spread),
