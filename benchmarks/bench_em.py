@@ -56,7 +56,8 @@ em-structure-cmu41-virtual
     motion. A summary row counts the body trees.
 em-structure-mocap-clips
     Clips, not whole takes: the CMU take and the placed 131_01 take each cut into three
-    consecutive clips of a third of their frames (120 Hz), every clip seen from the same
+    consecutive clips of a third of their frames (120 Hz; the HDM05 take, 202 frames, is
+    too short for clips of 180 frames and is left out), every clip seen from the same
     2 random cameras (4 with ``ctx.full``), so that a row differs from its take's others
     by the clip alone. Each row gives the clip's articulation (the RMS distance of its 3D
     markers from their best rigid fit, in figure radii: how much the figure bends, not
@@ -455,6 +456,7 @@ def articulation(X: np.ndarray) -> float:
 
 def case_structure_mocap_clips(ctx: Context) -> Iterator[dict[str, Any]]:
     assert ctx.data_dir is not None
+    # Clips of at least 180 frames (1.5 s at 120 Hz, about a gait cycle): HDM05's 202 frames are too few.
     takes = [(name, take) for name, take in _whole_takes(ctx) if take.n_frames >= 540]
     path = Path(ctx.data_dir) / "mocap" / "131_01.bvh"
     if path.exists():
