@@ -441,15 +441,17 @@ def articulation(X: np.ndarray) -> float:
         raise ValueError("articulation needs at least 3 points seen in every frame")
     Y = np.transpose(X, (1, 0, 2))  # (F, P, 3)
     Y = Y - Y.mean(axis=1, keepdims=True)
+
+    def rotations(ref: np.ndarray) -> np.ndarray:
+        # Kabsch: R[f] = U diag(1, 1, det) V^T from the SVD of ref^T Y[f]; ref @ R[f] fits frame f.
+        U, _, Vt = np.linalg.svd(np.einsum("pi,fpj->fij", ref, Y))
+        U[:, :, 2] *= np.sign(np.linalg.det(U @ Vt))[:, None]
+        return U @ Vt  # (F, 3, 3)
+
     ref = Y[0]
     for _ in range(3):
-        # Rotations taking the reference onto each frame: R = U diag(1, 1, det) V^T of ref^T Y.
-        U, _, Vt = np.linalg.svd(np.einsum("pi,fpj->fij", ref, Y))
-        d = np.sign(np.linalg.det(U @ Vt))
-        U[:, :, 2] *= d[:, None]
-        R = U @ Vt  # (F, 3, 3): ref @ R[f] fits frame f
-        fit = np.einsum("pi,fij->fpj", ref, R)
-        ref = np.einsum("fpj,fij->pi", Y, R) / Y.shape[0]  # frames rotated back, averaged
+        ref = np.einsum("fpj,fij->pi", Y, rotations(ref)) / Y.shape[0]  # frames rotated back, averaged
+    fit = np.einsum("pi,fij->fpj", ref, rotations(ref))
     radius = np.sqrt(np.mean(np.sum(ref * ref, axis=1)))
     return float(np.sqrt(np.mean(np.sum((Y - fit) ** 2, axis=2))) / radius)
 
