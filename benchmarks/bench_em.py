@@ -62,6 +62,12 @@ em-structure-mocap-clips
     by the clip alone. Each row gives the clip's articulation (the RMS distance of its 3D
     markers from their best rigid fit, in figure radii: how much the figure bends, not
     how far it goes); a summary row per take counts the body trees.
+em-structure-mocap-gaps
+    The random views of em-structure-mocap-random-views with 6 markers each losing one
+    run of 20-60% of the frames (``synthetic.marker_gaps``, a seed a view): raw optical
+    capture loses markers for seconds, longer than a gait cycle, where the bar of
+    em-structure-mocap-occluded hides each marker briefly. A summary row per take
+    counts the body trees.
 em-structure-hopkins
     Real video feature tracks (Hopkins 155, every sequence in the data directory):
     sticks found, and how well they respect the independent motions the dataset
@@ -322,15 +328,19 @@ def case_structure_mocap(ctx: Context) -> Iterator[dict[str, Any]]:
 
 
 def _view_row(ctx: Context, name: str, take: Trajectories, view: str | tuple[float, float],
-              occlusion: int | None = None) -> dict[str, Any]:
+              occlusion: int | None = None, gaps: int | None = None) -> dict[str, Any]:
     """em on one view of a take: scores, coherent sticks, anatomical edges, trees, failures by name.
 
-    With ``occlusion`` (a seed) the view is occluded by ``synthetic.occlude`` before the fit.
+    With ``occlusion`` (a seed) the view is occluded by ``synthetic.occlude`` before the fit;
+    with ``gaps`` (a seed) ``GAP_POINTS`` of its markers lose a long run each
+    (``synthetic.marker_gaps``).
     """
     from stickfigure.metrics import tree_consistency
 
     traj = take.project(view)
     data = traj if occlusion is None else sf.synthetic.occlude(traj, seed=occlusion)[0]
+    if gaps is not None:
+        data = sf.synthetic.marker_gaps(data, GAP_POINTS, seed=gaps)[0]
     skel, timing = ctx.time(lambda: sf.fit(data, method="em", random_state=ctx.seed))
     tc = tree_consistency(skel.labels, skel.edges, traj.labels_true, traj.edges_true, skel.n_sticks, detail=True)
     names = np.asarray(traj.names)
@@ -341,6 +351,8 @@ def _view_row(ctx: Context, name: str, take: Trajectories, view: str | tuple[flo
     shown = view if isinstance(view, str) else f"azimuth {view[0]:.0f}, elevation {view[1]:.0f}"
     if occlusion is not None:
         shown += f", occluded (seed {occlusion}, {1 - data.observed.mean():.1%} hidden)"
+    if gaps is not None:
+        shown += f", {GAP_POINTS} markers with a long gap (seed {gaps}, {1 - data.observed.mean():.1%} hidden)"
     return {"dataset": f"{name} {shown} {traj.frame_rate or 120:g} Hz, {traj.n_points}x{traj.n_frames}",
             "method": "em", **_score(skel, traj), "coherent_sticks": tc["coherent_sticks"],
             "anatomical_edges": tc["anatomical_edges"], "n_trees": n_trees, **timing,
@@ -400,6 +412,19 @@ def case_structure_mocap_occluded(ctx: Context) -> Iterator[dict[str, Any]]:
                 rows.append(_view_row(ctx, name, take, view, occlusion=ctx.seed + 5 + k))
                 yield rows[-1]
         yield _body_tree_summary(name, f"{len(views)} views x 2 occlusions", rows)
+
+
+GAP_POINTS = 6  # markers that lose a long run in em-structure-mocap-gaps (of 41 or 44)
+
+
+def case_structure_mocap_gaps(ctx: Context) -> Iterator[dict[str, Any]]:
+    n_views = 12 if ctx.full else 4
+    for name, take in _whole_takes(ctx):
+        rows = []
+        for k, view in enumerate(_random_views(ctx, n_views)):
+            rows.append(_view_row(ctx, name, take, view, gaps=50_000 + ctx.seed + k))
+            yield rows[-1]
+        yield _body_tree_summary(name, f"{n_views} random views, {GAP_POINTS} markers with a long gap", rows)
 
 
 def case_structure_cmu41_virtual(ctx: Context) -> Iterator[dict[str, Any]]:
@@ -580,6 +605,7 @@ CASES = [
     Case("em-structure-mocap-occluded", case_structure_mocap_occluded, needs_data=True),
     Case("em-structure-cmu41-virtual", case_structure_cmu41_virtual, needs_data=True),
     Case("em-structure-mocap-clips", case_structure_mocap_clips, needs_data=True),
+    Case("em-structure-mocap-gaps", case_structure_mocap_gaps, needs_data=True),
     Case("em-structure-hopkins", case_structure_hopkins, needs_data=True),
     Case("em-speed", case_speed),
     Case("em-time-spread", case_time_spread),

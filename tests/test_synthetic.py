@@ -95,3 +95,32 @@ def test_rigid_bodies_errors():
         sf.synthetic.rigid_bodies(2, frames=1)
     with pytest.raises(ValueError, match="points_per_body"):
         sf.synthetic.rigid_bodies(2, points_per_body=(5, 3))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_marker_gaps_hide_one_long_run_on_each_chosen_point(seed):
+    traj = sf.synthetic.walker(n_frames=120, seed=seed)
+    out, hidden = sf.synthetic.marker_gaps(traj, 4, seed=seed, min_fraction=0.25, max_fraction=0.5)
+    assert hidden.shape == (traj.n_points, traj.n_frames)
+    gapped = np.flatnonzero(hidden.any(axis=1))
+    assert gapped.size == 4
+    for p in gapped:
+        run = np.flatnonzero(hidden[p])
+        assert np.all(np.diff(run) == 1)  # one contiguous run
+        assert 0.25 * traj.n_frames - 1 <= run.size <= 0.5 * traj.n_frames + 1
+    assert np.all(np.isnan(out.xy[hidden])) and np.array_equal(out.observed, traj.observed & ~hidden)
+    again, hidden2 = sf.synthetic.marker_gaps(traj, 4, seed=seed, min_fraction=0.25, max_fraction=0.5)
+    assert np.array_equal(hidden, hidden2)  # the same seed, the same gaps
+    assert out.meta["gaps"]["n_points"] == 4
+
+
+def test_marker_gaps_name_bad_arguments():
+    traj = sf.synthetic.walker(n_frames=30, seed=0)
+    with pytest.raises(ValueError, match="at most"):
+        sf.synthetic.marker_gaps(traj, traj.n_points + 1, seed=0)
+    with pytest.raises(ValueError, match="min_fraction"):
+        sf.synthetic.marker_gaps(traj, 2, seed=0, min_fraction=0.7, max_fraction=0.5)
+    with pytest.raises(ValueError, match="n_points"):
+        sf.synthetic.marker_gaps(traj, 0, seed=0)
+    with pytest.raises(TypeError, match="Trajectories"):
+        sf.synthetic.marker_gaps(traj.xy, 2, seed=0)

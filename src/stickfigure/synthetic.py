@@ -21,7 +21,7 @@ from scipy.spatial.transform import Rotation
 from ._validation import check_positive, check_random_state
 from .trajectories import Trajectories, view_rotation
 
-__all__ = ["arm", "random_figure", "walker", "rigid_bodies", "occlude", "FigureSpec"]
+__all__ = ["arm", "random_figure", "walker", "rigid_bodies", "occlude", "marker_gaps", "FigureSpec"]
 
 
 @dataclass
@@ -601,4 +601,60 @@ def occlude(
     out = traj.with_xy(xy)
     out.meta["occlusion"] = {"bar_fraction": bar_fraction, "random_fraction": random_fraction,
                              "hidden_fraction": float(hidden.sum() / max(n_obs, 1))}
+    return out, hidden
+
+
+def marker_gaps(
+    traj: Trajectories,
+    n_points: int,
+    seed: Any = None,
+    *,
+    min_fraction: float = 0.2,
+    max_fraction: float = 0.6,
+) -> tuple[Trajectories, np.ndarray]:
+    """Lose some points for long stretches, as markers drop out of raw optical capture.
+
+    ``n_points`` points, drawn without replacement, each lose one contiguous run of
+    frames whose length is drawn uniformly between ``min_fraction`` and
+    ``max_fraction`` of the frames and whose start is drawn uniformly where the run
+    fits. Unlike :func:`occlude` (a bar that sweeps across the scene, so each point
+    is hidden briefly), a gap here can outlast several cycles of the motion, which
+    linear interpolation cannot bridge.
+
+    Parameters
+    ----------
+    traj : Trajectories
+    n_points : int
+        Points that lose a run, at most ``traj.n_points``.
+    seed : None, int or Generator
+    min_fraction, max_fraction : float
+        Bounds of a run's length as a share of the frames, 0 < min <= max < 1.
+
+    Returns
+    -------
+    gapped : Trajectories
+        A copy with the hidden entries set to NaN.
+    hidden : ndarray of bool, shape (P, F)
+        The entries that were observed in ``traj`` and are hidden now.
+    """
+    if not isinstance(traj, Trajectories):
+        raise TypeError(f"traj must be a Trajectories, got {type(traj).__name__}")
+    n_points = check_positive(n_points, "n_points", integer=True)
+    if n_points > traj.n_points:
+        raise ValueError(f"n_points must be at most the {traj.n_points} points of traj, got {n_points}")
+    if not 0 < min_fraction <= max_fraction < 1:
+        raise ValueError(f"need 0 < min_fraction <= max_fraction < 1, got {min_fraction} and {max_fraction}")
+    rng = check_random_state(seed)
+    P, F = traj.n_points, traj.n_frames
+    hidden = np.zeros((P, F), bool)
+    for p in rng.choice(P, size=n_points, replace=False):  # a few points: no loop over frames
+        length = max(1, int(round(rng.uniform(min_fraction, max_fraction) * F)))
+        start = int(rng.integers(0, F - length + 1))
+        hidden[p, start:start + length] = True
+    hidden &= traj.observed
+    xy = traj.xy.copy()
+    xy[hidden] = np.nan
+    out = traj.with_xy(xy)
+    out.meta["gaps"] = {"n_points": n_points, "min_fraction": min_fraction, "max_fraction": max_fraction,
+                        "hidden_fraction": float(hidden.sum() / max(int(traj.observed.sum()), 1))}
     return out, hidden
