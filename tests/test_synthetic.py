@@ -109,7 +109,7 @@ def test_marker_gaps_hide_one_long_run_on_each_chosen_point(seed):
         assert np.all(np.diff(run) == 1)  # one contiguous run
         assert 0.25 * traj.n_frames - 1 <= run.size <= 0.5 * traj.n_frames + 1
     assert np.all(np.isnan(out.xy[hidden])) and np.array_equal(out.observed, traj.observed & ~hidden)
-    again, hidden2 = sf.synthetic.marker_gaps(traj, 4, seed=seed, min_fraction=0.25, max_fraction=0.5)
+    _, hidden2 = sf.synthetic.marker_gaps(traj, 4, seed=seed, min_fraction=0.25, max_fraction=0.5)
     assert np.array_equal(hidden, hidden2)  # the same seed, the same gaps
     assert out.meta["gaps"]["n_points"] == 4
 
