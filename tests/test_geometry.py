@@ -463,3 +463,65 @@ def test_projection_procrustes_newton_finish_is_never_worse_than_completion_alon
     slow = g.orthogonal_procrustes_rows(A, B, n_iter=2000, tol=1e-14)  # completion steps only
     fit_fast, fit_slow = (np.sum((A - R @ B) ** 2, axis=(1, 2)) for R in (fast, slow))
     assert np.all(fit_fast <= fit_slow * (1 + 1e-7) + 1e-9)
+
+
+# ---------------------------------------------------------------- articulation
+def _two_links(swing: float, frames: int = 40, seed: int = 0) -> np.ndarray:
+    """Two rigid 8-point clouds joined at the origin, the second swinging by ``swing`` rad about a
+    fixed axis, the whole turning and moving in 3D, seen orthographically, shape (16, F, 2)."""
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=(8, 3)) * [1.0, 0.4, 0.3] + [1.2, 0, 0]
+    b = rng.normal(size=(8, 3)) * [1.0, 0.4, 0.3] - [1.2, 0, 0]
+    t = np.linspace(0.0, 2 * np.pi, frames)
+    bend = Rotation.from_rotvec(np.outer(swing * np.sin(t), [0.0, 0.0, 1.0])).as_matrix()  # (F, 3, 3)
+    body = Rotation.from_rotvec(np.outer(0.6 * t, [0.3, 1.0, 0.2])).as_matrix()
+    pa = np.einsum("fij,pj->pfi", body, a)
+    pb = np.einsum("fij,fjk,pk->pfi", body, bend, b)
+    xyz = np.concatenate([pa, pb]) + np.stack([np.cos(t), 0.5 * t, 0 * t], axis=1)[None]
+    return xyz[..., :2]
+
+
+def test_articulation_is_zero_for_one_rigid_body_and_grows_with_the_bend():
+    values = [g.articulation(_two_links(s)) for s in (0.0, 0.2, 0.6, 1.2)]
+    assert values[0] < 1e-6  # one rigid body, whatever its path
+    assert all(x < y for x, y in zip(values, values[1:])), values
+    assert 0.0 < values[-1] < 1.0
+
+
+def test_articulation_ignores_point_order_and_the_scene_s_placement():
+    xy = _two_links(0.6)
+    a = g.articulation(xy)
+    perm = np.random.default_rng(1).permutation(xy.shape[0])
+    assert g.articulation(xy[perm]) == pytest.approx(a, rel=1e-9)
+    c, s = np.cos(0.7), np.sin(0.7)
+    moved = xy @ np.array([[c, -s], [s, c]]).T * 3.0 + [40.0, -7.0]  # turned, scaled and moved in the image
+    assert g.articulation(moved) == pytest.approx(a, rel=1e-9)
+
+
+def test_articulation_with_missing_entries_stays_near_the_complete_value():
+    xy = _two_links(0.6, frames=60)
+    a = g.articulation(xy)
+    gapped = xy.copy()
+    gapped[np.random.default_rng(2).random(xy.shape[:2]) < 0.1] = np.nan
+    assert g.articulation(gapped) == pytest.approx(a, abs=0.02)
+
+
+def test_articulation_of_the_demo_figures():
+    """Known answers: the demo walker's gait barely bends it (em finds 6-8 of its 11 sticks, demo
+    module docstring); the demo's random figure bends about six times as much."""
+    from stickfigure.demo import make_figure
+
+    walker, rand = (g.articulation(make_figure(name).xy) for name in ("walker", "random"))
+    assert 0.03 < walker < 0.07
+    assert 0.2 < rand < 0.4
+
+
+def test_articulation_names_bad_input():
+    assert np.isnan(g.articulation(_two_links(0.6)[:4]))  # 4 trajectories always fit one affine body
+    assert np.isnan(g.articulation(np.zeros((6, 10, 2))))  # nothing moves from the centre
+    with pytest.raises(ValueError, match="shape"):
+        g.articulation(np.zeros((6, 10)))
+    with pytest.raises(ValueError, match="max_points"):
+        g.articulation(_two_links(0.6), max_points=2)
+    many = np.concatenate([_two_links(0.6, seed=k) for k in range(3)])  # 48 points
+    assert np.isfinite(g.articulation(many, max_points=20))

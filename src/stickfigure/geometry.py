@@ -45,6 +45,7 @@ __all__ = [
     "local_subspace_affinity",
     "measurement_matrix",
     "noise_level",
+    "articulation",
     "rigid_affinity",
     "gaussian_log_likelihood",
 ]
@@ -1300,6 +1301,68 @@ def noise_level(xy: Any, *, rank: int = 3, n_candidates: int = 8, max_points: in
     pts = np.arange(P) if P <= max_points else np.sort(rng.choice(P, max_points, replace=False))
     _, resid = _best_local_sets(G, _trajectory_distances(G, F), pts, _check_rank(rank), n_candidates)
     return float(np.sqrt(max(np.median(resid), 0.0) / max(F * D - rank, 1)))
+
+
+def articulation(xy: Any, *, rank: int = 3, max_points: int = 300, random_state: Any = 0) -> float:
+    """How far the points' motion departs from one rigid body, as a fraction of their spread.
+
+    The trajectories are fitted as one affine body (:func:`affine_factorization`
+    of the given ``rank``: ``x_pf = A_f s_p + t_f``, which any rigid body seen by
+    an affine camera satisfies, whatever its path); the value is the RMS residual
+    per observed coordinate over the RMS distance of the observations from the
+    fit's per-frame centre ``t_f``::
+
+        articulation = sqrt(sum_obs |x_pf - A_f s_p - t_f|^2 / sum_obs |x_pf - t_f|^2)
+
+    On complete data this is ``sqrt(sum_{k > rank} s_k^2 / sum_k s_k^2)`` over the
+    singular values of the centred measurement matrix: 0 for one rigid body (up
+    to noise), growing as parts move relative to each other. Moving, turning or
+    scaling the data (one similarity transform for all frames) or reordering the
+    points leaves it unchanged; another camera on the same 3D motion sees a
+    different share of the bend (CMU frames 0-270: 0.042-0.063 over six). It describes the
+    data, not a learned skeleton: a clip whose figure barely bends gives every
+    method little to separate its parts by. How little is too little depends on
+    the data (docs/em.md section 11, session 17): CMU and HDM05 clips at
+    0.04-0.08 gave the body's tree on 3 of 20 cameras, while the Hopkins 155 video
+    tracks measure 0.004-0.058, a tracked two-link arm 0.03, and many points on
+    each part separate well at that level; so no threshold is applied anywhere.
+
+    Parameters
+    ----------
+    xy : array_like, shape (P, F, D)
+        Positions, NaN where missing; every point observed at least once.
+    rank : int
+        Affine rank of one rigid body (3 for 3D motion, 2 for planar).
+    max_points : int
+        At most this many points (chosen at random, seeded) are fitted, which
+        bounds the cost on dense video tracks.
+    random_state : None, int or Generator
+
+    Returns
+    -------
+    float
+        In [0, 1]; NaN when fewer than ``rank + 2`` points are given (any
+        ``rank + 1`` trajectories fit one affine body exactly) or nothing moves
+        away from the centre.
+    """
+    xy = _check_xy(xy)
+    rank = _check_rank(rank)
+    if not isinstance(max_points, (int, np.integer)) or max_points < rank + 2:
+        raise ValueError(f"max_points must be an integer of at least rank + 2 = {rank + 2}, got {max_points!r}")
+    P, F, D = xy.shape
+    if P < rank + 2:
+        return float("nan")
+    rng = check_random_state(random_state)
+    if P > max_points:
+        xy = xy[np.sort(rng.choice(P, max_points, replace=False))]
+    fac = affine_factorization(xy, rank, random_state=rng)
+    obs = ~np.isnan(xy[..., 0])
+    t = fac.motions[..., -1]  # (F, D), the fit's centre per frame
+    spread = float(np.sum(np.where(obs[..., None], xy - t[None], 0.0) ** 2))
+    if not spread > 0.0:
+        return float("nan")
+    rss = fac.rms ** 2 * fac.n_observed_coords
+    return float(np.sqrt(min(rss / spread, 1.0)))
 
 
 def _complete_for_affinity(xy: np.ndarray, kappa: float = 1e-3) -> np.ndarray:
