@@ -493,3 +493,21 @@ def test_report_screenshot(tmp_path, figure_and_model):
     assert (img.reshape(-1, 3) < 60).all(axis=1).mean() > 0.01  # header / canvas
     hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV)
     assert (hsv[..., 1] > 120).mean() > 0.001  # saturated stick colours
+
+
+
+def test_report_gives_the_data_s_articulation():
+    """The input table says how much the clip bends: the still demo walker far less than a random figure."""
+    from stickfigure.demo import make_figure
+    from stickfigure.geometry import articulation
+
+    shown = {}
+    for name in ("walker", "random"):
+        traj = make_figure(name, n_frames=30)
+        skel = sf.fit(traj, method="mi-tree", labels=traj.labels_true, random_state=0)
+        html = unescape(render_report(skel, traj))
+        m = re.search(r"([0-9.]+)% of the motion departs from one rigid body", html)
+        assert m, name
+        shown[name] = float(m.group(1))
+        assert shown[name] == pytest.approx(100 * articulation(traj.xy), abs=0.051)
+    assert shown["walker"] < 10.0 < shown["random"]

@@ -117,6 +117,9 @@ def _overview(skeleton: Skeleton, traj: Trajectories, q: dict[str, Any]) -> str:
     off = int(traj.meta.get("frame_offset", 0))
     rows.append(("frames", f"{off} … {off + F - 1}" + (" of the video" if traj.video else "")))
     rows.append(("missing", f"{100 * traj.missing_fraction:.1f}% of the (point, frame) observations"))
+    if "articulation" in q:
+        rows.append(("articulation", f"{100 * q['articulation']:.1f}% of the motion departs from one rigid body "
+                                     "(the less the figure bends in these frames, the less they tell its parts apart)"))
     if D == 3:
         rows.append(("dimensions", "3D (drawn in an isometric projection)"))
     if "projection" in traj.meta:
@@ -343,7 +346,7 @@ def _quality(q: dict[str, Any]) -> str:
             if key in tr:
                 rows.append((label, tr[key], unit if key == "joint_error" else ""))
     body = table(["measure", "value", ""], rows, numeric=[False, True, False]) if rows else ""
-    for k in ("fit_rmse_error", "impute_error", "hidden_error"):
+    for k in ("fit_rmse_error", "impute_error", "hidden_error", "articulation_error"):
         if k in q:
             body += f'<p class="warn">{esc(k.split("_")[0])}: {esc(q[k])}</p>'
     if tr and "error" in tr:

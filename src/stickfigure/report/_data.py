@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from ..geometry import articulation
 from ..skeleton import Skeleton
 from ..trajectories import ISOMETRIC_VIEW, Trajectories, view_rotation
 
@@ -265,6 +266,9 @@ def quality(skeleton: Skeleton, traj: Trajectories, *, hide: float = 0.1, seed: 
     * ``truth``: with ground-truth labels, the adjusted Rand index and the
       misclassification rate of the sticks, and edge precision/recall/F1 when
       the true tree is known.
+    * ``articulation``: :func:`stickfigure.geometry.articulation` of the data, how far
+      their motion departs from one rigid body (a property of the clip, not of
+      the skeleton: the less the figure bends, the less the data tell its parts apart).
 
     Distances are in the data's units (pixels for video). Errors inside any
     step are reported as text, not raised: a report is still written.
@@ -316,6 +320,12 @@ def quality(skeleton: Skeleton, traj: Trajectories, *, hide: float = 0.1, seed: 
                 out["hidden_error"] = f"{type(exc).__name__}: {exc}"
     if traj.labels_true is not None and traj.n_points == skeleton.n_points:
         out["truth"] = _truth_scores(skeleton, traj)
+    try:
+        a = articulation(traj.xy)
+        if np.isfinite(a):
+            out["articulation"] = a
+    except ValueError as exc:
+        out["articulation_error"] = str(exc)
     return out
 
 
