@@ -109,6 +109,7 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 import stickfigure as sf
+from stickfigure.geometry import articulation as image_articulation
 from stickfigure.metrics import score_skeleton
 from stickfigure.models import get_method
 from stickfigure.trajectories import Trajectories
@@ -357,6 +358,8 @@ def _view_row(ctx: Context, name: str, take: Trajectories, view: str | tuple[flo
             "method": "em", **_score(skel, traj), "coherent_sticks": tc["coherent_sticks"],
             "anatomical_edges": tc["anatomical_edges"], "n_trees": n_trees, **timing,
             "notes": f"{skel.n_sticks} sticks in {n_trees} tree(s); "
+                     # geometry.articulation of what was fitted: how much the view shows the figure bend
+                     + f"2D articulation {image_articulation(data.xy):.3f}; "
                      + ("failures: " + "; ".join(wrong) if wrong else "no incoherent stick or edge")}
 
 
