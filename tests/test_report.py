@@ -511,3 +511,10 @@ def test_report_gives_the_data_s_articulation():
         shown[name] = float(m.group(1))
         assert shown[name] == pytest.approx(100 * articulation(traj.xy), abs=0.051)
     assert shown["walker"] < 10.0 < shown["random"]
+    # A point never seen is left out of the measure, not an error.
+    from stickfigure.report._data import quality
+
+    xy = traj.xy.copy()
+    xy[0] = np.nan
+    q = quality(skel, traj.with_xy(xy), hide=0)
+    assert "articulation_error" not in q and np.isfinite(q["articulation"])

@@ -321,7 +321,7 @@ def quality(skeleton: Skeleton, traj: Trajectories, *, hide: float = 0.1, seed: 
     if traj.labels_true is not None and traj.n_points == skeleton.n_points:
         out["truth"] = _truth_scores(skeleton, traj)
     try:
-        a = articulation(traj.xy)
+        a = articulation(traj.xy[obs.any(axis=1)])  # a point never seen tells nothing of the motion
         if np.isfinite(a):
             out["articulation"] = a
     except ValueError as exc:
