@@ -1319,13 +1319,14 @@ def articulation(xy: Any, *, rank: int = 3, max_points: int = 300, random_state:
     to noise), growing as parts move relative to each other. Moving, turning or
     scaling the data (one similarity transform for all frames) or reordering the
     points leaves it unchanged; another camera on the same 3D motion sees a
-    different share of the bend (CMU frames 0-270: 0.042-0.063 over six). It describes the
-    data, not a learned skeleton: a clip whose figure barely bends gives every
-    method little to separate its parts by. How little is too little depends on
-    the data (docs/em.md section 11, session 17): CMU and HDM05 clips at
-    0.04-0.08 gave the body's tree on 3 of 20 cameras, while the Hopkins 155 video
-    tracks measure 0.004-0.058, a tracked two-link arm 0.03, and many points on
-    each part separate well at that level; so no threshold is applied anywhere.
+    different share of the bend (CMU 85_02 frames 0-270: 0.042-0.063 from six).
+
+    It describes the data, not a learned skeleton: a clip whose figure barely
+    bends gives every method little to separate its parts by. How little is too
+    little depends on the data (docs/em.md section 11, session 17): CMU and HDM05
+    clips at 0.04-0.08 gave the body's tree on 3 of 20 cameras, while a tracked
+    two-link arm at 0.03, with tens of points on each link, is learned, and the
+    Hopkins 155 video tracks all measure 0.004-0.058. So no threshold is applied.
 
     Parameters
     ----------
