@@ -495,7 +495,6 @@ def test_report_screenshot(tmp_path, figure_and_model):
     assert (hsv[..., 1] > 120).mean() > 0.001  # saturated stick colours
 
 
-
 def test_report_gives_the_data_s_articulation():
     """The input table says how much the clip bends: the still demo walker far less than a random figure."""
     from stickfigure.demo import make_figure
