@@ -851,9 +851,16 @@ def _cmu_isometric(data_dir):
 
 
 @pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="known limitation (docs/em.md section 11): this view now gives a body tree "
+                                       "of 10 sticks, coarser than the 15 segments (both thigh markers on the pelvis "
+                                       "stick, each shin with its foot): ARI 0.452, edge F1 0.381")
 def test_cmu_isometric_view_follows_the_segments(data_dir):
     # Real-data known answer: CMU 85_02 (41 markers, 30 Hz, 203 frames), isometric view, scored
-    # against the marker set's 15 segments. Met again since the compiled EM loops re-rolled the
+    # against the marker set's 15 segments. Not met at any commit checked in session 17 (when the
+    # slow tests were run again), back to the parent of d53b263 (ARI 0.490): 9 sticks, ARI 0.531,
+    # edge F1 0.381 before the hub splits (6953e5a), 10 sticks, 0.452 / 0.381 since, with every
+    # stick one piece of the body and every edge anatomical (test_cmu_isometric_view_gives_a_body_tree).
+    # Strict, so that meeting it again is noticed. Met again since the compiled EM loops re-rolled the
     # search (docs/em.md section 11): 16 sticks in one tree, ARI 0.608, edge F1 0.64 (it was
     # 15 sticks, 0.530 / 0.56 with numpy 2.4.6 before them). Measured earlier with cuts across
     # a stick's major axis only (split_axes=1): 15 sticks, ARI 0.530, edge F1 0.720; 11 of 14
@@ -879,15 +886,14 @@ def test_cmu_isometric_view_keeps_its_sticks_on_the_body(data_dir):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="known limitation (docs/em.md section 11): on this view the left and "
-                                       "right shins share a joint, and LTHI shares a stick with STRN between the "
-                                       "left shin and the thorax")
 def test_cmu_isometric_view_gives_a_body_tree(data_dir):
     # What a body tree means: every stick holds markers of one connected piece of the body
     # (pelvis with the thigh markers, the shank with the foot, ...), and every edge joins two
     # sticks whose segments meet in the body. The held-out check with entries hidden one at a
     # time met this here (8 sticks, all 7 edges anatomical) but was coarser and imputed worse
-    # (docs/em.md section 11); strict, so that meeting it again is noticed.
+    # (docs/em.md section 11). Met again (it was a strict xfail, found passing in session 17) at
+    # every commit checked then, from the parent of fa998b6: 9 sticks, then 10 since the hub
+    # splits (6953e5a), every edge anatomical.
     traj, sk = _cmu_isometric(data_dir)
     s = score_skeleton(sk, traj)
     assert sk.n_sticks >= 6 and len(sk.edges) >= 5
