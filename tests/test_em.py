@@ -860,8 +860,8 @@ def test_cmu_isometric_view_follows_the_segments(data_dir):
     # slow tests were run again), back to the parent of d53b263 (ARI 0.490): 9 sticks, ARI 0.531,
     # edge F1 0.381 before the hub splits (6953e5a), 10 sticks, 0.452 / 0.381 since, with every
     # stick one piece of the body and every edge anatomical (test_cmu_isometric_view_gives_a_body_tree).
-    # Strict, so that meeting it again is noticed. Met again since the compiled EM loops re-rolled the
-    # search (docs/em.md section 11): 16 sticks in one tree, ARI 0.608, edge F1 0.64 (it was
+    # Strict, so that meeting it again is noticed. Earlier, it was met once the compiled EM loops
+    # re-rolled the search (docs/em.md section 11): 16 sticks in one tree, ARI 0.608, edge F1 0.64 (it was
     # 15 sticks, 0.530 / 0.56 with numpy 2.4.6 before them). Measured earlier with cuts across
     # a stick's major axis only (split_axes=1): 15 sticks, ARI 0.530, edge F1 0.720; 11 of 14
     # edges anatomical, 14 of 15 sticks one piece of the body (LTHI+STRN is not). With cuts along every axis: 13 sticks,
