@@ -68,6 +68,12 @@ em-structure-mocap-gaps
     capture loses markers for seconds, longer than a gait cycle, where the bar of
     em-structure-mocap-occluded hides each marker briefly. A summary row per take
     counts the body trees.
+em-structure-mocap-perspective
+    The random views of em-structure-mocap-random-views through a pinhole camera 4 scene
+    radii (the markers' RMS distance from their mean) from the scene centre, where the
+    model's cameras are orthographic: a real camera a few metres from a walk magnifies
+    the near side and the near end of the path by a fifth to a half. A summary row per
+    take counts the body trees; the rows give the range of magnification.
 em-structure-hopkins
     Real video feature tracks (Hopkins 155, every sequence in the data directory):
     sticks found, and how well they respect the independent motions the dataset
@@ -112,7 +118,7 @@ import stickfigure as sf
 from stickfigure.geometry import articulation as image_articulation
 from stickfigure.metrics import score_skeleton
 from stickfigure.models import get_method
-from stickfigure.trajectories import Trajectories
+from stickfigure.trajectories import Trajectories, view_angles, view_rotation
 
 from .run import Case, Context
 
@@ -329,16 +335,30 @@ def case_structure_mocap(ctx: Context) -> Iterator[dict[str, Any]]:
 
 
 def _view_row(ctx: Context, name: str, take: Trajectories, view: str | tuple[float, float],
-              occlusion: int | None = None, gaps: int | None = None) -> dict[str, Any]:
+              occlusion: int | None = None, gaps: int | None = None,
+              radii: float | None = None) -> dict[str, Any]:
     """em on one view of a take: scores, coherent sticks, anatomical edges, trees, failures by name.
 
     With ``occlusion`` (a seed) the view is occluded by ``synthetic.occlude`` before the fit;
     with ``gaps`` (a seed) ``GAP_POINTS`` of its markers lose a long run each
-    (``synthetic.marker_gaps``).
+    (``synthetic.marker_gaps``); with ``radii`` the view is a pinhole camera that many scene
+    radii (the RMS distance of the markers from their mean) from the scene centre.
     """
     from stickfigure.metrics import tree_consistency
 
-    traj = take.project(view)
+    camera = ""
+    if radii is None:
+        traj = take.project(view)
+    else:
+        X = take.xy.reshape(-1, 3)
+        centre = np.nanmean(X, axis=0)
+        distance = radii * float(np.sqrt(np.nanmean(np.sum((X - centre) ** 2, axis=1))))
+        traj = take.project(view, distance=distance)
+        # How much nearer and farther markers are magnified against the centre's depth.
+        towards = (X - centre) @ view_rotation(*view_angles(view), take.up_axis)[2]
+        mag = distance / (distance - towards)
+        camera = (f", pinhole camera at {radii:g} scene radii ({distance:.0f} units; "
+                  f"image scale {np.nanmin(mag):.2f}-{np.nanmax(mag):.2f})")
     data = traj if occlusion is None else sf.synthetic.occlude(traj, seed=occlusion)[0]
     if gaps is not None:
         data = sf.synthetic.marker_gaps(data, GAP_POINTS, seed=gaps)[0]
@@ -350,6 +370,7 @@ def _view_row(ctx: Context, name: str, take: Trajectories, view: str | tuple[flo
               for a, b in tc["non_anatomical"]]
     n_trees = skel.n_sticks - len(skel.edges)
     shown = view if isinstance(view, str) else f"azimuth {view[0]:.0f}, elevation {view[1]:.0f}"
+    shown += camera
     if occlusion is not None:
         shown += f", occluded (seed {occlusion}, {1 - data.observed.mean():.1%} hidden)"
     if gaps is not None:
@@ -428,6 +449,20 @@ def case_structure_mocap_gaps(ctx: Context) -> Iterator[dict[str, Any]]:
             rows.append(_view_row(ctx, name, take, view, gaps=50_000 + ctx.seed + k))
             yield rows[-1]
         yield _body_tree_summary(name, f"{n_views} random views, {GAP_POINTS} markers with a long gap", rows)
+
+
+PINHOLE_RADII = 4.0  # em-structure-mocap-perspective's camera distance, in scene radii
+
+
+def case_structure_mocap_perspective(ctx: Context) -> Iterator[dict[str, Any]]:
+    n_views = 12 if ctx.full else 4
+    for name, take in _whole_takes(ctx):
+        rows = []
+        for view in _random_views(ctx, n_views):
+            rows.append(_view_row(ctx, name, take, view, radii=PINHOLE_RADII))
+            yield rows[-1]
+        yield _body_tree_summary(name, f"{n_views} random views, pinhole camera at {PINHOLE_RADII:g} scene radii",
+                                 rows)
 
 
 def case_structure_cmu41_virtual(ctx: Context) -> Iterator[dict[str, Any]]:
@@ -609,6 +644,7 @@ CASES = [
     Case("em-structure-cmu41-virtual", case_structure_cmu41_virtual, needs_data=True),
     Case("em-structure-mocap-clips", case_structure_mocap_clips, needs_data=True),
     Case("em-structure-mocap-gaps", case_structure_mocap_gaps, needs_data=True),
+    Case("em-structure-mocap-perspective", case_structure_mocap_perspective, needs_data=True),
     Case("em-structure-hopkins", case_structure_hopkins, needs_data=True),
     Case("em-speed", case_speed),
     Case("em-time-spread", case_time_spread),

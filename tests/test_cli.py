@@ -154,6 +154,13 @@ def test_fit_projects_3d_mocap(tmp_path, capsys):
     assert "--project" in _error_line(capsys)
     assert main(["-q", "render", str(tmp_path / "w.json"), str(tmp_path / "walk3d.npz"), "--project", "30,20",
                  "-o", str(tmp_path / "w.png")]) == 0
+    # A pinhole camera for the projection; without --project the distance has nothing to place.
+    assert main(["-q", "fit", str(tmp_path / "walk3d.npz"), "--project", "30,20", "--camera-distance", "6",
+                 "--method", "mi-tree", "--param", f"labels={labels}", "-o", str(tmp_path / "p.json")]) == 0
+    assert sf.Skeleton.load(tmp_path / "p.json").n_dims == 2
+    assert main(["fit", str(tmp_path / "walk3d.npz"), "--camera-distance", "6", "--method", "mi-tree",
+                 "--param", f"labels={labels}", "-o", str(tmp_path / "q.json")]) == 2
+    assert "--camera-distance" in _error_line(capsys)
 
 
 def test_impute(work, model, tmp_path, capsys):
@@ -273,6 +280,10 @@ def test_learn(work, tmp_path, capsys):
     for what in ("model", "animation", "report"):
         assert f"{what}:" in out
     assert (tmp_path / "out" / "report.html").exists()
+    # --camera-distance places the camera of --project; with --project none there is none.
+    assert main(["-q", "learn", str(d / "fig.npz"), "--project", "none", "--camera-distance", "5",
+                 "-o", str(tmp_path / "none")]) == 2
+    assert "--camera-distance" in _error_line(capsys)
 
 
 def test_learn_video_with_tracker_options(work, tmp_path, capsys):

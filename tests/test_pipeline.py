@@ -69,6 +69,12 @@ def test_learn_from_3d_projects(tmp_path):
     out = learn(walker3d, tmp_path / "o", method="mi-tree", labels=walker3d.labels_true, project="side")
     pts = sf.load(out["points"])
     assert pts.n_dims == 2 and pts.meta["projection"]["azimuth"] == 0.0
+    # Through a pinhole camera: the points written are that camera's image.
+    out = learn(walker3d, tmp_path / "p", method="mi-tree", labels=walker3d.labels_true, project="side",
+                camera_distance=5.0)
+    pts = sf.load(out["points"])
+    np.testing.assert_allclose(pts.xy, walker3d.project("side", distance=5.0).xy)
+    assert pts.meta["projection"]["distance"] == 5.0
 
 
 def test_learn_bad_input(tmp_path, walker):

@@ -99,3 +99,42 @@ def test_missing_at_random_fraction():
     m, hidden = t.missing_at_random(0.25, random_state=0)
     assert hidden.mean() == pytest.approx(0.25, abs=0.01)
     assert np.isnan(m.xy[hidden]).all() and not np.isnan(m.xy[~hidden]).any()
+
+
+def test_project_pinhole_camera():
+    rng = np.random.default_rng(0)
+    xy = rng.normal(size=(6, 20, 3))
+    t = sf.Trajectories(xy, up_axis=2, labels_true=[0, 0, 0, 1, 1, 2], edges_true=[(0, 1), (1, 2)],
+                        joints_true=xy[:2] + 0.1)
+    ortho = t.project((30.0, 20.0), scale=2.0)
+    # A distant camera approaches the scaled-orthographic image of the points about the centre.
+    far = t.project((30.0, 20.0), scale=2.0, distance=1e7)
+    centre = 2.0 * (np.nanmean(xy.reshape(-1, 3), axis=0) @ view_rotation(30.0, 20.0, 2)[:2].T)
+    np.testing.assert_allclose(far.xy, ortho.xy - centre, atol=1e-5)
+    np.testing.assert_allclose(far.joints_true, ortho.joints_true - centre, atol=1e-5)
+    assert far.meta["projection"]["distance"] == 1e7 and "distance" not in ortho.meta["projection"]
+    # Near: a point's image is its orthographic one times distance / depth.
+    near = t.project((30.0, 20.0), scale=2.0, distance=10.0)
+    R = view_rotation(30.0, 20.0, 2)
+    Y = (xy - np.nanmean(xy.reshape(-1, 3), axis=0)) @ R.T
+    np.testing.assert_allclose(near.xy, 2.0 * Y[..., :2] * (10.0 / (10.0 - Y[..., 2]))[..., None], rtol=1e-12)
+    # Nearer the camera is drawn larger.
+    d = Y[..., 2].ravel()
+    grow = (np.linalg.norm(near.xy.reshape(-1, 2), axis=1) / np.linalg.norm(2.0 * Y[..., :2].reshape(-1, 2), axis=1))
+    assert grow[np.argmax(d)] > 1 > grow[np.argmin(d)]
+    # Missing entries stay missing.
+    xy2 = xy.copy()
+    xy2[1, 3] = np.nan
+    assert np.isnan(sf.Trajectories(xy2).project(distance=10.0).xy[1, 3]).all()
+
+
+def test_project_pinhole_camera_must_stand_clear_of_the_scene():
+    xy = np.zeros((3, 4, 3))
+    xy[0, :, 0] = 5.0
+    t = sf.Trajectories(xy, up_axis=2)
+    with pytest.raises(ValueError, match="inside the scene"):
+        t.project("side", distance=2.0)  # the side camera looks along +x; a point is 3.3 nearer
+    for bad in (0.0, -1.0, np.inf, np.nan):
+        with pytest.raises(ValueError, match="distance must be a positive finite number"):
+            t.project("side", distance=bad)
+    assert np.isfinite(t.project("side", distance=4.0).xy).all()

@@ -118,6 +118,9 @@ def _add_input_options(p: argparse.ArgumentParser, *, frames: bool = True) -> No
     g.add_argument("--project", metavar="VIEW",
                    help="project 3D data to 2D: isometric (the Ross et al. view), front, side, top, "
                         "or AZIMUTH,ELEVATION in degrees")
+    g.add_argument("--camera-distance", type=_positive_float, metavar="D",
+                   help="with --project: a pinhole camera D from the scene centre, in the data's units "
+                        "(default: orthographic)")
     g.add_argument("--drop-unobserved", action="store_true", help="drop points never observed in the frames used")
     g.add_argument("--load-option", action="append", metavar="NAME=VALUE", dest="load_options",
                    help="option for the file reader, repeatable (e.g. markers_per_bone=3 for BVH)")
@@ -285,6 +288,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", metavar="A:B", help="frame range of the input")
     p.add_argument("--project", metavar="VIEW", default="isometric",
                    help="view for 3D input (default isometric; 'none' keeps 3D)")
+    p.add_argument("--camera-distance", type=_positive_float, metavar="D",
+                   help="3D input: a pinhole camera D from the scene centre, in the data's units "
+                        "(default: orthographic)")
     p.add_argument("--roi", metavar="X,Y,W,H", help="video input: track only in this region (pixels)")
     p.add_argument("--track-option", action="append", metavar="NAME=VALUE",
                    help="video input: other tracker option (see 'stickfigure track'), repeatable, "
@@ -326,10 +332,13 @@ def _load_input(args: argparse.Namespace, path: str, *, frames: bool = True) -> 
     if getattr(args, "subsample", None):
         traj = traj.subsample(args.subsample)
     view = _view(getattr(args, "project", None))
+    distance = getattr(args, "camera_distance", None)
+    if distance is not None and view is None:
+        raise ValueError("--camera-distance places the camera of --project: give --project too")
     if view is not None:
         if traj.n_dims != 3:
             raise ValueError(f"--project applies to 3D data, but {Path(path).name} is {traj.n_dims}D")
-        traj = traj.project(view)
+        traj = traj.project(view, distance=distance)
     if getattr(args, "drop_unobserved", False):
         traj = traj.drop_unobserved()
     return traj
@@ -578,6 +587,10 @@ def _cmd_learn(args: argparse.Namespace) -> int:
     if not Path(args.source).exists():
         raise FileNotFoundError(f"no such input: {args.source}")
     kw: dict[str, Any] = {"progress": not args.quiet, "random_state": args.seed, "project": project}
+    if args.camera_distance is not None:
+        if project is None:
+            raise ValueError("--camera-distance places the camera of --project: it cannot go with --project none")
+        kw["camera_distance"] = args.camera_distance
     if frames is not None:
         kw["frames"] = frames
     track_options = _key_values(args.track_option, "--track-option")

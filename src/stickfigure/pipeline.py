@@ -87,6 +87,7 @@ def learn(
     progress: bool = False,
     frames: Any = None,
     project: str | tuple[float, float] | None = "isometric",
+    camera_distance: float | None = None,
     random_state: Any = 0,
     track_options: dict[str, Any] | None = None,
     max_points: int | None = 150,
@@ -111,6 +112,9 @@ def learn(
         Frame range of the input to use.
     project : "isometric", "front", "side", "top", (azimuth, elevation) or None
         View for projecting 3D input to 2D; None keeps 3D.
+    camera_distance : float, optional
+        3D input: project through a pinhole camera this far from the scene centre, in
+        the data's units (:meth:`Trajectories.project`); None projects orthographically.
     random_state : None, int or Generator
         Seed of the method (the default 0 makes runs repeatable).
     track_options : dict, optional
@@ -184,8 +188,9 @@ def learn(
     tracked = tracked or "tracker" in traj.meta
 
     if traj.n_dims == 3 and project is not None:
-        traj = traj.project(project)
-        _say(progress, f"projected 3D input to 2D ({project} view)")
+        traj = traj.project(project, distance=camera_distance)
+        camera = "orthographic" if camera_distance is None else f"pinhole camera at {camera_distance:g}"
+        _say(progress, f"projected 3D input to 2D ({project} view, {camera})")
     traj = traj.drop_unobserved()
     if tracked or traj.missing_fraction > max_missing:
         traj = best_window(traj, max_points=max_points, max_frames=400 if tracked else None)

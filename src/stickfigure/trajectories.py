@@ -27,10 +27,27 @@ import numpy as np
 
 from ._validation import as_float_array, check_edges, check_labels, check_random_state
 
-__all__ = ["Trajectories", "as_trajectories", "ISOMETRIC_VIEW", "view_rotation"]
+__all__ = ["Trajectories", "as_trajectories", "ISOMETRIC_VIEW", "NAMED_VIEWS", "view_angles", "view_rotation"]
 
 #: Azimuth and elevation (degrees) of the isometric view used by Ross et al.
 ISOMETRIC_VIEW = (45.0, float(np.degrees(np.arctan(1.0 / np.sqrt(2.0)))))
+
+
+NAMED_VIEWS = {"isometric": ISOMETRIC_VIEW, "front": (-90.0, 0.0), "side": (0.0, 0.0), "top": (-90.0, 90.0)}
+"""The views :meth:`Trajectories.project` knows by name, as (azimuth, elevation) in degrees."""
+
+
+def view_angles(view: str | tuple[float, float]) -> tuple[float, float]:
+    """(azimuth, elevation) in degrees of a view name in ``NAMED_VIEWS`` or of an angle pair."""
+    if isinstance(view, str):
+        if view not in NAMED_VIEWS:
+            raise ValueError(f"view must be one of {sorted(NAMED_VIEWS)} or (azimuth, elevation), got {view!r}")
+        return NAMED_VIEWS[view]
+    try:
+        az, el = (float(v) for v in view)
+    except (TypeError, ValueError):
+        raise ValueError(f"view must be a name or (azimuth, elevation) in degrees, got {view!r}") from None
+    return az, el
 
 
 def view_rotation(azimuth: float, elevation: float, up_axis: int = 2) -> np.ndarray:
@@ -317,8 +334,9 @@ class Trajectories:
         view: str | tuple[float, float] = "isometric",
         *,
         scale: float = 1.0,
+        distance: float | None = None,
     ) -> "Trajectories":
-        """Project 3D trajectories to 2D by scaled-orthographic projection.
+        """Project 3D trajectories to 2D, by a scaled-orthographic or a pinhole camera.
 
         Parameters
         ----------
@@ -326,30 +344,58 @@ class Trajectories:
             The camera direction about the data's vertical axis ``up_axis``.
             ``"isometric"`` is the view Ross et al. used for motion capture.
         scale : float
-            Uniform image scale of the scaled-orthographic camera.
+            Uniform image scale: of the scaled-orthographic camera, or of the pinhole
+            camera at the scene centre's depth.
+        distance : float, optional
+            A pinhole (perspective) camera this far from the scene centre (the mean of all
+            observed positions over all frames), in the data's units, looking at the centre
+            from ``view``. A point's image is its orthographic image times
+            ``distance / depth``, so a point at the centre's depth keeps ``scale`` and one
+            nearer the camera is drawn larger. ``None`` (default): scaled orthographic,
+            the limit of an infinitely distant camera.
 
         Returns
         -------
         Trajectories
             2D data with the y axis up; ground truth and joints are projected too.
+
+        Raises
+        ------
+        ValueError
+            For 2D data, an unknown view, a ``distance`` that is not a positive finite
+            number, or a camera at or inside the scene (a point at depth zero or behind).
         """
         if self.n_dims != 3:
             raise ValueError(f"project() needs 3D trajectories, these are {self.n_dims}D")
-        named = {"isometric": ISOMETRIC_VIEW, "front": (-90.0, 0.0), "side": (0.0, 0.0), "top": (-90.0, 90.0)}
-        if isinstance(view, str):
-            if view not in named:
-                raise ValueError(f"view must be one of {sorted(named)} or (azimuth, elevation), got {view!r}")
-            az, el = named[view]
-        else:
-            try:
-                az, el = (float(v) for v in view)
-            except (TypeError, ValueError):
-                raise ValueError(f"view must be a name or (azimuth, elevation) in degrees, got {view!r}") from None
-        P2 = float(scale) * view_rotation(az, el, self.up_axis)[:2]  # (2, 3)
-        xy = self.xy @ P2.T
-        joints = self.joints_true @ P2.T if self.joints_true is not None else None
+        az, el = view_angles(view)
+        R = view_rotation(az, el, self.up_axis)  # rows: image right, image up, towards the camera
         meta = dict(self.meta)
         meta["projection"] = {"azimuth": az, "elevation": el, "scale": float(scale)}
+        if distance is None:
+            P2 = float(scale) * R[:2]  # (2, 3)
+            xy = self.xy @ P2.T
+            joints = self.joints_true @ P2.T if self.joints_true is not None else None
+        else:
+            D = float(distance)
+            if not (np.isfinite(D) and D > 0):
+                raise ValueError(f"distance must be a positive finite number, got {distance!r}")
+            centre = np.nanmean(self.xy.reshape(-1, 3), axis=0)
+
+            def pinhole(X: np.ndarray) -> np.ndarray:
+                Y = (X - centre) @ R.T  # (..., 3) in the camera's axes about the centre
+                depth = D - Y[..., 2]  # along the viewing direction, from the camera
+                return float(scale) * Y[..., :2] * (D / depth)[..., None]
+
+            # The nearest point decides whether the camera stands clear of the scene.
+            nearest = float(np.nanmax((self.xy - centre) @ R[2]))
+            if self.joints_true is not None and np.isfinite(self.joints_true).any():
+                nearest = max(nearest, float(np.nanmax((self.joints_true - centre) @ R[2])))
+            if nearest >= D:
+                raise ValueError(f"a camera at distance {D:g} from the scene centre is inside the scene: "
+                                 f"points come {nearest:g} towards it; give a distance above {nearest:g}")
+            xy = pinhole(self.xy)
+            joints = pinhole(self.joints_true) if self.joints_true is not None else None
+            meta["projection"]["distance"] = D
         return Trajectories(
             xy=xy,
             names=self.names,
