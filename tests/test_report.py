@@ -517,3 +517,13 @@ def test_report_gives_the_data_s_articulation():
     xy[0] = np.nan
     q = quality(skel, traj.with_xy(xy), hide=0)
     assert "articulation_error" not in q and np.isfinite(q["articulation"])
+
+
+def test_report_names_the_camera_of_a_projection():
+    """3D data projected for the fit: the input table says from where, and through which camera."""
+    walker3d = sf.synthetic.walker(n_frames=20, seed=0, project=False)
+    for distance, camera in ((None, "orthographic camera"), (5.0, "pinhole camera 5 from the scene centre")):
+        traj = walker3d.project((30.0, 20.0), distance=distance)
+        skel = sf.fit(traj, method="mi-tree", labels=traj.labels_true, random_state=0)
+        html = unescape(render_report(skel, traj))
+        assert f"3D data seen from azimuth 30°, elevation 20°, {camera}" in html

@@ -124,8 +124,10 @@ def _overview(skeleton: Skeleton, traj: Trajectories, q: dict[str, Any]) -> str:
         rows.append(("dimensions", "3D (drawn in an isometric projection)"))
     if "projection" in traj.meta:
         pr = traj.meta["projection"]
+        camera = ("orthographic camera" if pr.get("distance") is None
+                  else f"pinhole camera {fmt(pr['distance'])} from the scene centre")
         rows.append(("projection", f"3D data seen from azimuth {fmt(pr.get('azimuth'))}°, "
-                                   f"elevation {fmt(pr.get('elevation'))}°"))
+                                   f"elevation {fmt(pr.get('elevation'))}°, {camera}"))
     if "window" in traj.meta:
         w = traj.meta["window"]
         how = ("the shot window with the most independently moving points"
