@@ -24,6 +24,12 @@ em-imputation-mocap
     The same protocol on motion capture projected to 2D (isometric view): the CMU
     41-marker take and the HDM05 take from the data directory, at 30 Hz and at
     their own 120 Hz (the first 240 frames of each unless ``ctx.full``).
+em-imputation-mocap-perspective
+    em-imputation-mocap's protocol (30 Hz) on the takes seen through a pinhole camera 4
+    scene radii from the scene centre (as em-structure-mocap-perspective), em with its
+    defaults and with ``impute_scale`` (each new frame's image scale measured against the
+    learned shapes); with ``ctx.full`` also ``impute_scale`` on the orthographic view, where
+    it has nothing to correct.
 em-structure-mocap
     The CMU and HDM05 takes (isometric, at 30 Hz and at their own 120 Hz, the first
     240 frames of each unless ``ctx.full``): ARI of the sticks against the marker-set
@@ -192,6 +198,15 @@ def case_structure_virtual_markers(ctx: Context) -> Iterator[dict[str, Any]]:
 
 
 # ----------------------------------------------------------------- imputation
+PINHOLE_RADII = 4.0  # the perspective cases' camera distance, in scene radii
+
+
+def _pinhole_distance(take: Trajectories, radii: float) -> float:
+    """``radii`` times the 3D markers' RMS distance from their mean (the scene radius)."""
+    X = take.xy.reshape(-1, 3)
+    return radii * float(np.sqrt(np.nanmean(np.sum((X - np.nanmean(X, axis=0)) ** 2, axis=1))))
+
+
 def _withhold(traj: Trajectories, fraction: float, seed: int) -> Trajectories:
     """Hide ``fraction`` of the observations at random, keeping every point seen at least twice."""
     rng = np.random.default_rng(seed)
@@ -264,9 +279,10 @@ def case_imputation_synthetic(ctx: Context) -> Iterator[dict[str, Any]]:
                                                                   "train 75% withheld"))
 
 
-def _mocap(ctx: Context, native: bool = False) -> list[tuple[str, Trajectories]]:
+def _mocap(ctx: Context, native: bool = False, radii: float | None = None) -> list[tuple[str, Trajectories]]:
     """The mocap takes projected isometrically, at 30 Hz (or at their own rate with ``native``),
-    the first 240 frames unless ``ctx.full``."""
+    the first 240 frames unless ``ctx.full``; through a pinhole camera ``radii`` scene radii from
+    the scene centre when given (``_pinhole_distance``)."""
     assert ctx.data_dir is not None
     out = []
     for name in ("85_02.c3d", "HDM_dg_06-03_03_120.c3d"):
@@ -275,7 +291,8 @@ def _mocap(ctx: Context, native: bool = False) -> list[tuple[str, Trajectories]]
             continue
         traj = sf.load(path).drop_unobserved()
         step = 1 if native else max(1, int(round((traj.frame_rate or 120.0) / 30.0)))
-        traj = traj.subsample(step).project("isometric")
+        traj = traj.subsample(step)
+        traj = traj.project("isometric", distance=None if radii is None else _pinhole_distance(traj, radii))
         if not ctx.full and traj.n_frames > 240:
             traj = traj.slice(frames=slice(0, 240))
         out.append((name, traj))
@@ -291,6 +308,21 @@ def case_imputation_mocap(ctx: Context) -> Iterator[dict[str, Any]]:
     for k, (name, traj) in enumerate(_mocap(ctx, native=True)):
         yield from _imputation_rows(ctx, f"{name} isometric {traj.frame_rate or 120:g} Hz", [(ctx.seed + k, traj)],
                                     ("train clean", "train occluded", "train 75% withheld"))
+
+
+def case_imputation_mocap_perspective(ctx: Context) -> Iterator[dict[str, Any]]:
+    # em's cameras are orthographic; through a pinhole camera the figure's image grows and shrinks
+    # as it walks, and impute_scale measures that scale in every new frame (docs/em.md section 8).
+    configs: list[tuple[float | None, bool]] = [(PINHOLE_RADII, False), (PINHOLE_RADII, True)]
+    if ctx.full:
+        configs.append((None, True))  # what the option costs where the camera is orthographic
+    for radii, scaled in configs:
+        camera = "orthographic" if radii is None else f"pinhole camera at {radii:g} scene radii"
+        for k, (name, traj) in enumerate(_mocap(ctx, radii=radii)):
+            yield from _imputation_rows(ctx, f"{name} isometric 30 Hz, {camera}" + (", em impute_scale" if scaled
+                                                                                      else ""),
+                                        [(ctx.seed + k, traj)], ("train clean", "train occluded", "train 75% withheld"),
+                                        em_kw=(lambda _: {"impute_scale": True}) if scaled else None)
 
 
 def _selected_bic(skel: sf.Skeleton) -> float:
@@ -352,7 +384,7 @@ def _view_row(ctx: Context, name: str, take: Trajectories, view: str | tuple[flo
     else:
         X = take.xy.reshape(-1, 3)
         centre = np.nanmean(X, axis=0)
-        distance = radii * float(np.sqrt(np.nanmean(np.sum((X - centre) ** 2, axis=1))))
+        distance = _pinhole_distance(take, radii)
         traj = take.project(view, distance=distance)
         # How much nearer and farther markers are magnified against the centre's depth.
         towards = (X - centre) @ view_rotation(*view_angles(view), take.up_axis)[2]
@@ -451,7 +483,6 @@ def case_structure_mocap_gaps(ctx: Context) -> Iterator[dict[str, Any]]:
         yield _body_tree_summary(name, f"{n_views} random views, {GAP_POINTS} markers with a long gap", rows)
 
 
-PINHOLE_RADII = 4.0  # em-structure-mocap-perspective's camera distance, in scene radii
 
 
 def case_structure_mocap_perspective(ctx: Context) -> Iterator[dict[str, Any]]:
@@ -645,6 +676,7 @@ CASES = [
     Case("em-structure-mocap-clips", case_structure_mocap_clips, needs_data=True),
     Case("em-structure-mocap-gaps", case_structure_mocap_gaps, needs_data=True),
     Case("em-structure-mocap-perspective", case_structure_mocap_perspective, needs_data=True),
+    Case("em-imputation-mocap-perspective", case_imputation_mocap_perspective, needs_data=True),
     Case("em-structure-hopkins", case_structure_hopkins, needs_data=True),
     Case("em-speed", case_speed),
     Case("em-time-spread", case_time_spread),

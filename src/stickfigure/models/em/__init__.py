@@ -30,7 +30,7 @@ from ...skeleton import Skeleton
 from ...trajectories import Trajectories
 from ..base import StickEstimator, register
 from .forked import Speculative
-from .impute import refit_motions, rotation_concentration, start_state
+from .impute import frame_scales, refit_motions, rotation_concentration, start_state
 from .initialise import fill_gaps, initial_state
 from .model import Observations, Priors, StickState, normalise
 from .refine import misfit_ratios
@@ -313,6 +313,13 @@ class EMSkeleton(StickEstimator):
         (default True; docs/em.md section 8): where a few visible points leave a
         stick's pose loosely determined, it stays near its neighbours' rotations.
         False: no prior on motions (the paper's model).
+    impute_scale : bool
+        In :meth:`impute`, first estimate the figure's image scale in every new frame
+        against the learned stick shapes (:func:`.impute.frame_scales`, relative to the
+        training frames' own), divide it out, and multiply the predictions back
+        (default False; docs/em.md section 8). For a pinhole camera whose subject comes
+        nearer or goes farther than in training: the model's cameras are orthographic.
+        It costs some accuracy on data from an orthographic camera.
     random_state : None, int or Generator
     progress : bool
         Show a tqdm progress bar over the merge stages (stage k of n, objective).
@@ -338,7 +345,7 @@ class EMSkeleton(StickEstimator):
                  max_frames: int | None = 400, oversegment: float | None = 3.5, n_jobs: int | None = None,
                  tau_p: float = 25.0,
                  alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e6, impute_iter: int = 100,
-                 impute_joint_ends: bool = True, impute_rotation_prior: bool = True,
+                 impute_joint_ends: bool = True, impute_rotation_prior: bool = True, impute_scale: bool = False,
                  random_state: Any = None, progress: bool = False) -> None:
         self.n_iter = n_iter
         self.n_iter_merge = n_iter_merge
@@ -387,6 +394,7 @@ class EMSkeleton(StickEstimator):
         self.impute_iter = impute_iter
         self.impute_joint_ends = impute_joint_ends
         self.impute_rotation_prior = impute_rotation_prior
+        self.impute_scale = impute_scale
         self.random_state = random_state
         self.progress = progress
 
@@ -417,7 +425,7 @@ class EMSkeleton(StickEstimator):
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(map(repr, allowed))}, got {getattr(self, name)!r}")
-        for name in ("impute_joint_ends", "impute_rotation_prior", "unpair", "split_hubs"):
+        for name in ("impute_joint_ends", "impute_rotation_prior", "impute_scale", "unpair", "split_hubs"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
         if isinstance(self.max_trees, (str, bool)) and self.max_trees != "auto":
@@ -528,20 +536,29 @@ class EMSkeleton(StickEstimator):
         motion and endpoints are updated as one block, and with
         ``impute_rotation_prior`` each rotation is also drawn toward its
         neighbouring frames' by a prior matched to the trained motions
-        (docs/em.md section 8).
+        (docs/em.md section 8). With ``impute_scale`` every frame is first brought
+        to the learned shapes' size (:func:`.impute.frame_scales`) and the
+        predictions are scaled back.
         """
-        state, obs, norm = _impute_state(skeleton, traj)
-        n_iter = int(skeleton.params.get("impute_iter", 100))
-        priors = Priors(**skeleton.info["priors"])
-        settings = EMSettings(**{**skeleton.info["settings"], "tol": 0.0})
-        # A model saved before these options imputes with their defaults.
-        kappa = None
-        if skeleton.params.get("impute_rotation_prior", True):
-            kappa = rotation_concentration(np.asarray(skeleton.motions, float)[..., :3])
-        refit_motions(state, obs, priors, settings, n_iter,
-                      collapse=bool(skeleton.params.get("impute_joint_ends", True)), kappa=kappa)
-        centre, scale = norm
-        return state.point_predictions() * scale + centre
+        if skeleton.params.get("impute_scale", False):
+            return _impute_scaled(skeleton, traj)
+        return _impute_plain(skeleton, traj)
+
+
+def _impute_plain(skeleton: Skeleton, traj: Trajectories) -> np.ndarray:
+    """:meth:`EMSkeleton.impute_skeleton` without ``impute_scale``."""
+    state, obs, norm = _impute_state(skeleton, traj)
+    n_iter = int(skeleton.params.get("impute_iter", 100))
+    priors = Priors(**skeleton.info["priors"])
+    settings = EMSettings(**{**skeleton.info["settings"], "tol": 0.0})
+    # A model saved before these options imputes with their defaults.
+    kappa = None
+    if skeleton.params.get("impute_rotation_prior", True):
+        kappa = rotation_concentration(np.asarray(skeleton.motions, float)[..., :3])
+    refit_motions(state, obs, priors, settings, n_iter,
+                  collapse=bool(skeleton.params.get("impute_joint_ends", True)), kappa=kappa)
+    centre, scale = norm
+    return state.point_predictions() * scale + centre
 
 
 # --------------------------------------------------------------------------- helpers
@@ -794,6 +811,10 @@ def _skeleton(stages: list[Stage], selected: int, norm: tuple[np.ndarray, float]
         "centre": centre,
         "scale": np.array(scale),
         "precisions": np.array([st.tau_w, st.tau_m, st.tau_t]),
+        # The training frames' own image scale against the learned shapes (``impute_scale``
+        # measures new frames relative to it: noise and skin motion bias each estimate alike).
+        "frame_scale_reference": np.array(np.exp(np.mean(np.log(frame_scales(st.labels, st.local * scale,
+                                                                              traj.xy))))),
     }
     return Skeleton(method="em", labels=st.labels, n_sticks=S, edges=edges, joints=joints,
                     edge_joints=np.array([row[v] for v in verts], dtype=np.int64), motions=motions,
@@ -836,6 +857,27 @@ def mid_air(skeleton: Skeleton) -> float:
     if reach.size == 0 or not np.isfinite(js["figure_radius"]) or js["figure_radius"] <= 0:
         return 0.0
     return float(reach.min(axis=1).max() / js["figure_radius"])
+
+
+def _impute_scaled(skeleton: Skeleton, traj: Trajectories) -> np.ndarray:
+    """``impute_scale``: each frame scaled to the learned shapes' size about its visible points' mean,
+    imputed, and scaled back (docs/em.md section 8)."""
+    if traj.n_dims != 2:
+        raise ValueError(f"impute_scale applies to 2D data, these are {traj.n_dims}D")
+    xy = traj.xy
+    seen = traj.observed  # (P, F)
+    cnt = seen.sum(axis=0)
+    f = np.arange(traj.n_frames)
+    has = cnt > 0
+    if not has.any():
+        raise ValueError("no point is observed in any frame given; em cannot impute")
+    mean = np.where(seen[..., None], xy, 0.0).sum(axis=0)[has] / cnt[has, None]
+    # frames with nothing visible: the mean interpolated in time, so that scaling moves nothing there
+    centre = np.stack([np.interp(f, f[has], mean[:, d]) for d in range(2)], axis=1)  # (F, 2)
+    reference = float(skeleton.state.get("frame_scale_reference", 1.0))
+    c = frame_scales(skeleton.labels, skeleton.local, xy) / reference  # (F,)
+    pred = _impute_plain(skeleton, traj.with_xy(centre + (xy - centre) / c[:, None]))
+    return centre + c[:, None] * (pred - centre)
 
 
 def _impute_state(skeleton: Skeleton, traj: Trajectories) -> tuple[StickState, Observations, tuple]:

@@ -18,7 +18,12 @@ from .initialise import interpolate_rotations
 from .model import Observations, Priors, StickState, chain_degree
 from .updates import FLAT_RATIO, em_sweep, update_endpoints
 
-__all__ = ["start_state", "refit_motions", "heldout_error", "rotation_concentration"]
+__all__ = ["start_state", "refit_motions", "heldout_error", "rotation_concentration", "frame_scales"]
+
+# A stick's visible points tell its image scale only when they span a plane: their second
+# principal spread must be at least this fraction of the first (a line shows its length
+# foreshortened, never more, so it bounds the scale from below only).
+SCALE_MIN_SPREAD = 0.2
 
 
 def start_state(labels: np.ndarray, local: np.ndarray, ends: np.ndarray, vertex_of: np.ndarray,
@@ -196,3 +201,84 @@ def rotation_concentration(rot: np.ndarray) -> np.ndarray:
         return np.zeros(S)
     tr = np.einsum("sfij,sfij->sf", rot[:, 1:], rot[:, :-1])
     return 1.0 / np.maximum(np.mean(D - tr, axis=1), 1e-12)
+
+
+def frame_scales(labels: np.ndarray, local: np.ndarray, xy: np.ndarray, *,
+                 min_spread: float = SCALE_MIN_SPREAD) -> np.ndarray:
+    """The figure's image scale in each frame, against the learned shapes of its sticks.
+
+    Under a weak-perspective camera a stick's points are ``c_f R l + t`` with ``R`` of
+    orthonormal rows and ``c_f`` the frame's scale (the model's cameras have ``c_f = 1``).
+    For one stick and frame, take its visible points' local coordinates about their
+    mean, ``U`` (n, 2) along their two principal axes, and fit the 2 x 2 affine map ``A``
+    from ``U`` to the centred image points by least squares. The map is ``c R B`` with
+    ``B`` (3, 2) the orthonormal axes, and ``R B`` has singular values 1 and ``cos theta``
+    (theta the tilt of that plane out of the image), so the largest singular value of
+    ``A`` is ``c``: closed form, unlike a fit of ``c`` after the rotations, where a
+    stick turned out of the image plane already accounts for a smaller image. A frame's
+    scale is the median over its sticks of those values, each weighted by its visible
+    points; frames without a stick showing at least 3 points that span a plane
+    (second principal spread at least ``min_spread`` of the first) are interpolated in
+    time (1 where no frame has one).
+
+    Parameters
+    ----------
+    labels : ndarray of int, shape (P,)
+        Stick of every point.
+    local : ndarray, shape (P, 3)
+        The points' local coordinates (the learned stick shapes), in the units of ``xy``.
+    xy : ndarray, shape (P, F, 2)
+        Image trajectories, NaN where missing.
+    min_spread : float
+        See above.
+
+    Returns
+    -------
+    ndarray, shape (F,)
+        Positive scales; 1 where the image is as large as the shapes.
+    """
+    labels = np.asarray(labels)
+    local = np.asarray(local, float)
+    xy = np.asarray(xy, float)
+    if xy.ndim != 3 or xy.shape[2] != 2 or local.shape != (xy.shape[0], 3) or labels.shape != (xy.shape[0],):
+        raise ValueError(f"need labels (P,), local (P, 3) and xy (P, F, 2); got {labels.shape}, {local.shape}, "
+                         f"{xy.shape}")
+    seen = ~np.isnan(xy[..., 0])  # (P, F)
+    F = xy.shape[1]
+    logs, weights = [], []
+    for s in np.unique(labels[labels >= 0]):  # one batched fit per stick over all frames
+        idx = np.flatnonzero(labels == s)
+        if idx.size < 3:
+            continue
+        m = seen[idx].T.astype(float)  # (F, n)
+        cnt = m.sum(axis=1)
+        cw = np.maximum(cnt, 1.0)
+        L = local[idx]
+        Lc = (L[None] - ((m @ L) / cw[:, None])[:, None]) * m[..., None]  # (F, n, 3) about the visible mean
+        x = np.where(seen[idx].T[..., None], xy[idx].transpose(1, 0, 2), 0.0)  # (F, n, 2)
+        Xc = (x - (np.einsum("fnd,fn->fd", x, m) / cw[:, None])[:, None]) * m[..., None]
+        lam, V = np.linalg.eigh(np.einsum("fni,fnj->fij", Lc, Lc))  # ascending
+        ok = (cnt >= 3) & (lam[:, 1] >= min_spread ** 2 * lam[:, 2]) & (lam[:, 2] > 0)
+        U = Lc @ V[..., [2, 1]]  # (F, n, 2)
+        UtU = np.einsum("fni,fnj->fij", U, U)
+        UtU[~ok] = np.eye(2)
+        A = np.einsum("fnd,fni->fdi", Xc, U) @ np.linalg.inv(UtU)  # (F, 2, 2)
+        top = np.linalg.svd(A, compute_uv=False)[:, 0]
+        ok &= top > 0
+        logs.append(np.where(ok, np.log(np.where(ok, top, 1.0)), 0.0))
+        weights.append(np.where(ok, cnt, 0.0))
+    if not logs:
+        return np.ones(F)
+    lg, wt = np.array(logs), np.array(weights)  # (S', F)
+    # Weighted median over the sticks of every frame at once: sort each frame's values and
+    # take the first whose cumulative weight reaches half the frame's total.
+    order = np.argsort(lg, axis=0)
+    lg_s, cum = np.take_along_axis(lg, order, axis=0), np.cumsum(np.take_along_axis(wt, order, axis=0), axis=0)
+    total = cum[-1]
+    good = total > 0
+    if not good.any():
+        return np.ones(F)
+    pick = np.argmax(cum >= 0.5 * total[None], axis=0)
+    med = lg_s[pick, np.arange(F)]
+    f = np.arange(F)
+    return np.exp(np.interp(f, f[good], med[good]))
