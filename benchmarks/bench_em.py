@@ -124,7 +124,7 @@ import stickfigure as sf
 from stickfigure.geometry import articulation as image_articulation
 from stickfigure.metrics import score_skeleton
 from stickfigure.models import get_method
-from stickfigure.trajectories import Trajectories, view_angles, view_rotation
+from stickfigure.trajectories import Trajectories
 
 from .run import Case, Context
 
@@ -382,15 +382,10 @@ def _view_row(ctx: Context, name: str, take: Trajectories, view: str | tuple[flo
     if radii is None:
         traj = take.project(view)
     else:
-        X = take.xy.reshape(-1, 3)
-        centre = np.nanmean(X, axis=0)
         distance = _pinhole_distance(take, radii)
         traj = take.project(view, distance=distance)
-        # How much nearer and farther markers are magnified against the centre's depth.
-        towards = (X - centre) @ view_rotation(*view_angles(view), take.up_axis)[2]
-        mag = distance / (distance - towards)
-        camera = (f", pinhole camera at {radii:g} scene radii ({distance:.0f} units; "
-                  f"image scale {np.nanmin(mag):.2f}-{np.nanmax(mag):.2f})")
+        lo, hi = traj.meta["projection"]["magnification"]  # nearer and farther markers against the centre's
+        camera = f", pinhole camera at {radii:g} scene radii ({distance:.0f} units; image scale {lo:.2f}-{hi:.2f})"
     data = traj if occlusion is None else sf.synthetic.occlude(traj, seed=occlusion)[0]
     if gaps is not None:
         data = sf.synthetic.marker_gaps(data, GAP_POINTS, seed=gaps)[0]
@@ -481,8 +476,6 @@ def case_structure_mocap_gaps(ctx: Context) -> Iterator[dict[str, Any]]:
             rows.append(_view_row(ctx, name, take, view, gaps=50_000 + ctx.seed + k))
             yield rows[-1]
         yield _body_tree_summary(name, f"{n_views} random views, {GAP_POINTS} markers with a long gap", rows)
-
-
 
 
 def case_structure_mocap_perspective(ctx: Context) -> Iterator[dict[str, Any]]:

@@ -122,6 +122,8 @@ def test_project_pinhole_camera():
     d = Y[..., 2].ravel()
     grow = (np.linalg.norm(near.xy.reshape(-1, 2), axis=1) / np.linalg.norm(2.0 * Y[..., :2].reshape(-1, 2), axis=1))
     assert grow[np.argmax(d)] > 1 > grow[np.argmin(d)]
+    mag = 10.0 / (10.0 - d)
+    assert near.meta["projection"]["magnification"] == pytest.approx([mag.min(), mag.max()], rel=1e-12)
     # Missing entries stay missing.
     xy2 = xy.copy()
     xy2[1, 3] = np.nan

@@ -351,8 +351,9 @@ class Trajectories:
             observed positions over all frames), in the data's units, looking at the centre
             from ``view``. A point's image is its orthographic image times
             ``distance / depth``, so a point at the centre's depth keeps ``scale`` and one
-            nearer the camera is drawn larger. ``None`` (default): scaled orthographic,
-            the limit of an infinitely distant camera.
+            nearer the camera is drawn larger; ``meta["projection"]["magnification"]``
+            gives the range of ``distance / depth`` over the points. ``None`` (default):
+            scaled orthographic, the limit of an infinitely distant camera.
 
         Returns
         -------
@@ -380,21 +381,25 @@ class Trajectories:
             if not (np.isfinite(D) and D > 0):
                 raise ValueError(f"distance must be a positive finite number, got {distance!r}")
             centre = np.nanmean(self.xy.reshape(-1, 3), axis=0)
-
-            def pinhole(X: np.ndarray) -> np.ndarray:
-                Y = (X - centre) @ R.T  # (..., 3) in the camera's axes about the centre
-                depth = D - Y[..., 2]  # along the viewing direction, from the camera
-                return float(scale) * Y[..., :2] * (D / depth)[..., None]
-
+            # Points and joints in the camera's axes about the centre, each computed once.
+            Y = (self.xy - centre) @ R.T  # (P, F, 3)
+            Yj = (self.joints_true - centre) @ R.T if self.joints_true is not None else None
             # The nearest point decides whether the camera stands clear of the scene.
-            nearest = float(np.nanmax((self.xy - centre) @ R[2]))
-            if self.joints_true is not None and np.isfinite(self.joints_true).any():
-                nearest = max(nearest, float(np.nanmax((self.joints_true - centre) @ R[2])))
+            nearest = float(np.nanmax(Y[..., 2]))
+            if Yj is not None and np.isfinite(Yj).any():
+                nearest = max(nearest, float(np.nanmax(Yj[..., 2])))
             if nearest >= D:
                 raise ValueError(f"a camera at distance {D:g} from the scene centre is inside the scene: "
                                  f"points come {nearest:g} towards it; give a distance above {nearest:g}")
-            xy = pinhole(self.xy)
-            joints = pinhole(self.joints_true) if self.joints_true is not None else None
+
+            def magnification(Yc: np.ndarray) -> np.ndarray:
+                return D / (D - Yc[..., 2])  # distance over depth along the viewing direction
+
+            mag = magnification(Y)
+            xy = float(scale) * Y[..., :2] * mag[..., None]
+            joints = float(scale) * Yj[..., :2] * magnification(Yj)[..., None] if Yj is not None else None
+            # How much larger or smaller than at the centre's depth the points are drawn.
+            meta["projection"]["magnification"] = [float(np.nanmin(mag)), float(np.nanmax(mag))]
             meta["projection"]["distance"] = D
         return Trajectories(
             xy=xy,
