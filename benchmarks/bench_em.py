@@ -24,6 +24,11 @@ em-imputation-mocap
     The same protocol on motion capture projected to 2D (isometric view): the CMU
     41-marker take and the HDM05 take from the data directory, at 30 Hz and at
     their own 120 Hz (the first 240 frames of each unless ``ctx.full``).
+em-imputation-mocap-random-views
+    em-imputation-mocap's protocol (30 Hz) on the takes seen from the random cameras of
+    em-structure-mocap-random-views (2 a take, 6 with ``ctx.full``), one scene per camera
+    with its own occlusion draw; each row counts the scenes where em is below each baseline.
+    ``ctx.full`` adds the takes at their own 120 Hz.
 em-imputation-mocap-perspective
     em-imputation-mocap's protocol (30 Hz) on the takes seen through a pinhole camera 4
     scene radii from the scene centre (as em-structure-mocap-perspective), em with its
@@ -279,10 +284,11 @@ def case_imputation_synthetic(ctx: Context) -> Iterator[dict[str, Any]]:
                                                                   "train 75% withheld"))
 
 
-def _mocap(ctx: Context, native: bool = False, radii: float | None = None) -> list[tuple[str, Trajectories]]:
-    """The mocap takes projected isometrically, at 30 Hz (or at their own rate with ``native``),
-    the first 240 frames unless ``ctx.full``; through a pinhole camera ``radii`` scene radii from
-    the scene centre when given (``_pinhole_distance``)."""
+def _mocap(ctx: Context, native: bool = False, radii: float | None = None,
+           view: str | tuple[float, float] = "isometric") -> list[tuple[str, Trajectories]]:
+    """The mocap takes projected from ``view`` (isometric unless given), at 30 Hz (or at their own
+    rate with ``native``), the first 240 frames unless ``ctx.full``; through a pinhole camera
+    ``radii`` scene radii from the scene centre when given (``_pinhole_distance``)."""
     assert ctx.data_dir is not None
     out = []
     for name in ("85_02.c3d", "HDM_dg_06-03_03_120.c3d"):
@@ -292,7 +298,7 @@ def _mocap(ctx: Context, native: bool = False, radii: float | None = None) -> li
         traj = sf.load(path).drop_unobserved()
         step = 1 if native else max(1, int(round((traj.frame_rate or 120.0) / 30.0)))
         traj = traj.subsample(step)
-        traj = traj.project("isometric", distance=None if radii is None else _pinhole_distance(traj, radii))
+        traj = traj.project(view, distance=None if radii is None else _pinhole_distance(traj, radii))
         if not ctx.full and traj.n_frames > 240:
             traj = traj.slice(frames=slice(0, 240))
         out.append((name, traj))
@@ -308,6 +314,22 @@ def case_imputation_mocap(ctx: Context) -> Iterator[dict[str, Any]]:
     for k, (name, traj) in enumerate(_mocap(ctx, native=True)):
         yield from _imputation_rows(ctx, f"{name} isometric {traj.frame_rate or 120:g} Hz", [(ctx.seed + k, traj)],
                                     ("train clean", "train occluded", "train 75% withheld"))
+
+
+def case_imputation_mocap_random_views(ctx: Context) -> Iterator[dict[str, Any]]:
+    # The issue's imputation check runs on camera views nobody chose: each take from the random
+    # cameras of em-structure-mocap-random-views, one scene per camera (its own occlusion draw).
+    # With ctx.full also at the takes' own 120 Hz (em-imputation-mocap's second half).
+    views = _random_views(ctx, 6 if ctx.full else 2)
+    for native in (False, True) if ctx.full else (False,):
+        per_take: dict[str, list[tuple[int, Trajectories]]] = {}
+        for v, view in enumerate(views):
+            for k, (name, traj) in enumerate(_mocap(ctx, native=native, view=view)):
+                per_take.setdefault(name, []).append((ctx.seed + 100 * k + v, traj))
+        for name, scenes in per_take.items():
+            rate = f"{scenes[0][1].frame_rate or 120:g} Hz" if native else "30 Hz"
+            yield from _imputation_rows(ctx, f"{name} {len(scenes)} random views {rate}", scenes,
+                                        ("train clean", "train occluded", "train 75% withheld"))
 
 
 def case_imputation_mocap_perspective(ctx: Context) -> Iterator[dict[str, Any]]:
@@ -670,6 +692,7 @@ CASES = [
     Case("em-structure-mocap-gaps", case_structure_mocap_gaps, needs_data=True),
     Case("em-structure-mocap-perspective", case_structure_mocap_perspective, needs_data=True),
     Case("em-imputation-mocap-perspective", case_imputation_mocap_perspective, needs_data=True),
+    Case("em-imputation-mocap-random-views", case_imputation_mocap_random_views, needs_data=True),
     Case("em-structure-hopkins", case_structure_hopkins, needs_data=True),
     Case("em-speed", case_speed),
     Case("em-time-spread", case_time_spread),
