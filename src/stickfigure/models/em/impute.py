@@ -28,7 +28,7 @@ SCALE_MIN_SPREAD = 0.2
 
 def start_state(labels: np.ndarray, local: np.ndarray, ends: np.ndarray, vertex_of: np.ndarray,
                 alpha: np.ndarray, beta: np.ndarray, precisions: tuple[float, float, float], alpha0: float,
-                obs: Observations) -> StickState:
+                obs: Observations, *, chain: bool = True) -> StickState:
     """A state for the frames of ``obs`` (normalised units): fixed L, K, G, R; motions by Procrustes.
 
     Parameters
@@ -38,12 +38,17 @@ def start_state(labels: np.ndarray, local: np.ndarray, ends: np.ndarray, vertex_
     precisions : (tau_w, tau_m, tau_t) of training
     alpha0 : the Gamma prior's shape (phi's posterior is rescaled to the new frame count)
     obs : the new observations
+    chain : keep the Procrustes rotations of consecutive frames in one mirror branch where
+        the visible points are coplanar (:func:`chain_mirrors`)
 
     Motions start from a per-frame Procrustes fit of each stick's shape to its visible
     points where it shows at least 4 points and 60 % of them, and those are not nearly
     coplanar; elsewhere the rotation is interpolated (slerp) and the translation taken
-    from the visible points (interpolated where none is). Vertices start at the mean
-    of their endpoints' predictions.
+    from the visible points (interpolated where none is). Where the frames so fitted show
+    coplanar points (a 3-point stick always does), each frame's fit and its mirror
+    through that plane fit them equally; with ``chain`` the one nearer the previous
+    frame's is taken, so that the slerp between them does not cross from one branch to
+    the other. Vertices start at the mean of their endpoints' predictions.
     """
     from ...geometry import orthogonal_procrustes_rows
 
@@ -81,6 +86,13 @@ def start_state(labels: np.ndarray, local: np.ndarray, ends: np.ndarray, vertex_
             good = cnt >= max(cnt.max(), 1)
         R = np.zeros((F, D, 3))  # the other frames are interpolated: not solved for
         R[good] = orthogonal_procrustes_rows(A[good], B[good])
+        # Visible points in a plane (every frame of a 3-point stick) fit a rotation and its mirror
+        # through that plane equally, and the solver picks either: a slerp between frames of the
+        # two branches swings every point off the plane (and the endpoints) far away.
+        flat = good & (ratio < FLAT_RATIO ** 2)
+        if chain and D == 2 and flat.any():
+            vec = np.linalg.eigh(B[flat] @ np.swapaxes(B[flat], 1, 2))[1][:, :, 0]  # (n_flat, 3) plane normals
+            R[good] = chain_mirrors(R[good], flat[good], vec)
         R = interpolate_rotations(R, good)
         t = abar - np.einsum("fdk,fk->fd", R, lbar)
         seen = cnt > 0
@@ -147,9 +159,10 @@ def heldout_error(st: StickState, obs: Observations, priors: Priors, settings: A
     from the visible entries as in imputation (:func:`start_state`,
     :func:`refit_motions`), so nothing it learned from a hidden entry's own frame
     reaches the prediction except through the time-invariant shapes. The motion
-    update is the paper's order without the rotation prior (``Skeleton.impute``'s
-    defaults differ): the held-out check's margins were measured with it, and the
-    new update changed the CMU skeletons both ways (docs/em.md section 11).
+    update is the paper's order without the rotation prior, and the start without the
+    mirror chain (``Skeleton.impute``'s defaults differ): the held-out check's margins
+    were measured with them, and the new update changed the CMU skeletons both ways
+    (docs/em.md section 11).
 
     Parameters
     ----------
@@ -166,10 +179,56 @@ def heldout_error(st: StickState, obs: Observations, priors: Priors, settings: A
     keep = obs.mask * ~hid
     sub = Observations(obs.w * keep[..., None], keep)
     start = start_state(st.labels, st.local, st.ends, st.vertex_of, st.alpha, st.beta,
-                        (st.tau_w, st.tau_m, st.tau_t), priors.alpha0, sub)
+                        (st.tau_w, st.tau_m, st.tau_t), priors.alpha0, sub, chain=False)
     refit_motions(start, sub, priors, settings, n_iter)
     err = np.sum((start.point_predictions() - obs.w) ** 2, axis=2)
     return np.sum(np.where(hid, err, 0.0), axis=1)
+
+
+def chain_mirrors(R: np.ndarray, flat: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Consecutive frames' rotations put in the same mirror branch where the data leave it open.
+
+    Parameters
+    ----------
+    R : ndarray, shape (K, 2, 3)
+        Orthonormal-row rotations of one stick in K frames, in time order.
+    flat : ndarray of bool, shape (K,)
+        Frames whose visible points lie in a plane: there ``R`` and its mirror
+        ``R (I - 2 n n^T)`` (``n`` the plane's normal in the stick's frame) fit them equally.
+    normals : ndarray, shape (flat.sum(), 3)
+        Unit normal of that plane in each flat frame.
+
+    Returns
+    -------
+    ndarray, shape (K, 2, 3)
+        Each flat frame takes whichever of its two rotations is nearer the previous
+        frame's choice (the angle between them); frames that are not flat are kept and
+        anchor the chain. The choice is made relative to the previous frame's own
+        solution and carried forward as a parity (exact when consecutive flat frames
+        share the plane, as every frame of a 3-point stick does), so it is vectorised
+        over frames.
+    """
+    R = np.asarray(R, float)
+    flat = np.asarray(flat, bool)
+    K = R.shape[0]
+    if K < 2 or not flat.any():
+        return R.copy()
+    n = np.zeros((K, 3))
+    n[flat] = normals
+    M = R - 2.0 * np.einsum("kdi,ki,kj->kdj", R, n, n)  # R (I - 2 n n^T); = R where not flat
+
+    def full(X: np.ndarray) -> np.ndarray:  # (K, 3, 3): the rows and their cross product
+        return np.concatenate([X, np.cross(X[:, 0], X[:, 1])[:, None]], axis=1)
+
+    Rf, Mf = full(R), full(M)
+    keep = np.einsum("kij,kij->k", Rf[:-1], Rf[1:])  # tr(A^T B) = 1 + 2 cos(angle): larger is nearer
+    swap = np.einsum("kij,kij->k", Rf[:-1], Mf[1:])
+    flip = np.concatenate([[False], flat[1:] & (swap > keep)])
+    count = np.cumsum(flip)
+    # The parity restarts at every anchor (a frame that is not flat keeps its own branch).
+    anchor = np.maximum.accumulate(np.where(~flat, np.arange(K), -1))
+    parity = (count - np.where(anchor >= 0, count[np.maximum(anchor, 0)], 0)) % 2 == 1
+    return np.where(parity[:, None, None], M, R)
 
 
 def rotation_concentration(rot: np.ndarray) -> np.ndarray:
