@@ -16,7 +16,7 @@ import numpy as np
 
 from .initialise import interpolate_rotations
 from .model import Observations, Priors, StickState, chain_degree
-from .updates import FLAT_RATIO, em_sweep, update_endpoints
+from .updates import FLAT_RATIO, MIRROR_TIE, em_sweep, update_endpoints
 
 __all__ = ["start_state", "refit_motions", "heldout_error", "rotation_concentration", "frame_scales"]
 
@@ -45,16 +45,18 @@ def start_state(labels: np.ndarray, local: np.ndarray, ends: np.ndarray, vertex_
     points where it shows at least 4 points and 60 % of them, and those are not nearly
     coplanar; elsewhere the rotation is interpolated (slerp) and the translation taken
     from the visible points (interpolated where none is). Where the frames so fitted show
-    coplanar points (a 3-point stick always does), each frame's fit and its mirror
-    through that plane fit them equally; with ``chain`` the one nearer the previous
-    frame's is taken, so that the slerp between them does not cross from one branch to
-    the other. Vertices start at the mean of their endpoints' predictions.
+    coplanar points (a 3-point stick always does), a frame's fit and its mirror through
+    that plane fit them equally; with ``chain``, in frames where the two fit within
+    ``updates.MIRROR_TIE`` in energy (``tau_w`` times the squared residual), the one nearer
+    the previous frame's is taken, so that the slerp between frames does not cross from
+    one branch to the other. Vertices start at the mean of their endpoints' predictions.
     """
     from ...geometry import orthogonal_procrustes_rows
 
     mask = obs.mask > 0
     S = int(labels.max()) + 1
     P, F, D = obs.w.shape
+    tau_w, tau_m, tau_t = (float(v) for v in precisions)
     rot = np.zeros((S, F, D, 3))
     trans = np.zeros((S, F, D))
     for s in range(S):  # one batched Procrustes per stick over all frames
@@ -86,13 +88,20 @@ def start_state(labels: np.ndarray, local: np.ndarray, ends: np.ndarray, vertex_
             good = cnt >= max(cnt.max(), 1)
         R = np.zeros((F, D, 3))  # the other frames are interpolated: not solved for
         R[good] = orthogonal_procrustes_rows(A[good], B[good])
-        # Visible points in a plane (every frame of a 3-point stick) fit a rotation and its mirror
-        # through that plane equally, and the solver picks either: a slerp between frames of the
-        # two branches swings every point off the plane (and the endpoints) far away.
-        flat = good & (ratio < FLAT_RATIO ** 2)
-        if chain and D == 2 and flat.any():
-            vec = np.linalg.eigh(B[flat] @ np.swapaxes(B[flat], 1, 2))[1][:, :, 0]  # (n_flat, 3) plane normals
-            R[good] = chain_mirrors(R[good], flat[good], vec)
+        if chain and D == 2 and good.any():
+            # Visible points in a plane (every frame of a 3-point stick) fit a rotation and its
+            # mirror through that plane equally, and the solver picks either: a slerp between
+            # frames of the two branches swings the points off the plane (and the endpoints)
+            # far away. A frame is tied when the mirror through the plane of least spread of
+            # its visible points fits them within MIRROR_TIE in energy (training's rule).
+            # (Two visible points lie in every plane through their line: the mirror through any
+            # of them fits alike, and the chain takes the one of least turn from the frame before.)
+            Ag, Bg, Rg = A[good], B[good], R[good]
+            vec = np.linalg.eigh(Bg @ np.swapaxes(Bg, 1, 2))[1][:, :, 0]  # (n_good, 3) plane normals
+            Mg = Rg - 2.0 * np.einsum("kdi,ki,kj->kdj", Rg, vec, vec)
+            energy = [tau_w * np.sum((Ag - X @ Bg) ** 2, axis=(1, 2)) for X in (Rg, Mg)]
+            tied = np.abs(energy[1] - energy[0]) <= MIRROR_TIE
+            R[good] = chain_mirrors(Rg, tied, vec[tied])
         R = interpolate_rotations(R, good)
         t = abar - np.einsum("fdk,fk->fd", R, lbar)
         seen = cnt > 0
@@ -101,7 +110,6 @@ def start_state(labels: np.ndarray, local: np.ndarray, ends: np.ndarray, vertex_
             for d in range(D):
                 t[~seen, d] = np.interp(np.flatnonzero(~seen), si, t[si, d])
         rot[s], trans[s] = R, t
-    tau_w, tau_m, tau_t = (float(v) for v in precisions)
     vertex_of = np.asarray(vertex_of, np.int64)
     J = int(vertex_of.max()) + 1
     a = np.asarray(alpha, float) / np.asarray(beta, float)
@@ -193,8 +201,9 @@ def chain_mirrors(R: np.ndarray, flat: np.ndarray, normals: np.ndarray) -> np.nd
     R : ndarray, shape (K, 2, 3)
         Orthonormal-row rotations of one stick in K frames, in time order.
     flat : ndarray of bool, shape (K,)
-        Frames whose visible points lie in a plane: there ``R`` and its mirror
-        ``R (I - 2 n n^T)`` (``n`` the plane's normal in the stick's frame) fit them equally.
+        Frames whose visible points lie in a plane, so that ``R`` and its mirror
+        ``R (I - 2 n n^T)`` (``n`` the plane's normal in the stick's frame) fit them alike
+        (:func:`start_state` asks for a tie in energy).
     normals : ndarray, shape (flat.sum(), 3)
         Unit normal of that plane in each flat frame.
 
