@@ -18,7 +18,7 @@ from .initialise import interpolate_rotations
 from .model import Observations, Priors, StickState, chain_degree
 from .updates import FLAT_RATIO, MIRROR_TIE, em_sweep, update_endpoints
 
-__all__ = ["start_state", "refit_motions", "heldout_error", "rotation_concentration", "frame_scales"]
+__all__ = ["start_state", "chain_mirrors", "refit_motions", "heldout_error", "rotation_concentration", "frame_scales"]
 
 # A stick's visible points tell its image scale only when they span a plane: their second
 # principal spread must be at least this fraction of the first (a line shows its length
