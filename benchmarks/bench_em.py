@@ -284,11 +284,8 @@ def case_imputation_synthetic(ctx: Context) -> Iterator[dict[str, Any]]:
                                                                   "train 75% withheld"))
 
 
-def _mocap(ctx: Context, native: bool = False, radii: float | None = None,
-           view: str | tuple[float, float] = "isometric") -> list[tuple[str, Trajectories]]:
-    """The mocap takes projected from ``view`` (isometric unless given), at 30 Hz (or at their own
-    rate with ``native``), the first 240 frames unless ``ctx.full``; through a pinhole camera
-    ``radii`` scene radii from the scene centre when given (``_pinhole_distance``)."""
+def _mocap_takes(ctx: Context, native: bool = False) -> list[tuple[str, Trajectories]]:
+    """The mocap takes in 3D, at 30 Hz (or at their own rate with ``native``)."""
     assert ctx.data_dir is not None
     out = []
     for name in ("85_02.c3d", "HDM_dg_06-03_03_120.c3d"):
@@ -297,12 +294,26 @@ def _mocap(ctx: Context, native: bool = False, radii: float | None = None,
             continue
         traj = sf.load(path).drop_unobserved()
         step = 1 if native else max(1, int(round((traj.frame_rate or 120.0) / 30.0)))
-        traj = traj.subsample(step)
-        traj = traj.project(view, distance=None if radii is None else _pinhole_distance(traj, radii))
-        if not ctx.full and traj.n_frames > 240:
-            traj = traj.slice(frames=slice(0, 240))
-        out.append((name, traj))
+        out.append((name, traj.subsample(step)))
     return out
+
+
+def _seen(ctx: Context, take: Trajectories, view: str | tuple[float, float],
+          radii: float | None = None) -> Trajectories:
+    """A 3D take projected from ``view`` (through a pinhole camera ``radii`` scene radii from the
+    scene centre when given), the first 240 frames unless ``ctx.full``."""
+    traj = take.project(view, distance=None if radii is None else _pinhole_distance(take, radii))
+    if not ctx.full and traj.n_frames > 240:
+        traj = traj.slice(frames=slice(0, 240))
+    return traj
+
+
+def _mocap(ctx: Context, native: bool = False, radii: float | None = None,
+           view: str | tuple[float, float] = "isometric") -> list[tuple[str, Trajectories]]:
+    """The mocap takes projected from ``view`` (isometric unless given), at 30 Hz (or at their own
+    rate with ``native``), the first 240 frames unless ``ctx.full``; through a pinhole camera
+    ``radii`` scene radii from the scene centre when given (``_pinhole_distance``)."""
+    return [(name, _seen(ctx, take, view, radii)) for name, take in _mocap_takes(ctx, native)]
 
 
 def case_imputation_mocap(ctx: Context) -> Iterator[dict[str, Any]]:
@@ -323,9 +334,10 @@ def case_imputation_mocap_random_views(ctx: Context) -> Iterator[dict[str, Any]]
     views = _random_views(ctx, 6 if ctx.full else 2)
     for native in (False, True) if ctx.full else (False,):
         per_take: dict[str, list[tuple[int, Trajectories]]] = {}
+        takes = _mocap_takes(ctx, native)  # read once, projected from every camera
         for v, view in enumerate(views):
-            for k, (name, traj) in enumerate(_mocap(ctx, native=native, view=view)):
-                per_take.setdefault(name, []).append((ctx.seed + 100 * k + v, traj))
+            for k, (name, take) in enumerate(takes):
+                per_take.setdefault(name, []).append((ctx.seed + 100 * k + v, _seen(ctx, take, view)))
         for name, scenes in per_take.items():
             rate = f"{scenes[0][1].frame_rate or 120:g} Hz" if native else "30 Hz"
             yield from _imputation_rows(ctx, f"{name} {len(scenes)} random views {rate}", scenes,
