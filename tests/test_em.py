@@ -211,22 +211,25 @@ def test_save_load_and_impute_after_loading(tmp_path, chain, fitted):
 
 
 def test_imputation_options_are_parameters_and_survive_saving(tmp_path, chain, fitted):
-    # The joint motion-endpoint block and the rotation prior (docs/em.md section 8) are read
-    # from the saved parameters; each setting predicts the hidden entries near the truth.
+    # The joint motion-endpoint block and the rotation and centroid priors (docs/em.md section 8)
+    # are read from the saved parameters; each setting predicts the hidden entries near the truth.
     path = fitted.skeleton_.save(tmp_path / "opts.json")
     occluded, hidden = sf.synthetic.occlude(chain, seed=3)
     filled = {}
     for joint in (True, False):
         for prior in (True, False):
-            sk = sf.Skeleton.load(path)
-            sk.params.update(impute_joint_ends=joint, impute_rotation_prior=prior)
-            filled[joint, prior] = f = sk.impute(occluded)
-            assert np.sqrt(np.mean(np.sum((f[hidden] - chain.xy[hidden]) ** 2, axis=-1))) < 0.05, (joint, prior)
-    np.testing.assert_allclose(filled[True, True], fitted.skeleton_.impute(occluded))  # the defaults
-    assert not np.allclose(filled[True, True], filled[False, False])
+            for centroid in (True, False):
+                sk = sf.Skeleton.load(path)
+                sk.params.update(impute_joint_ends=joint, impute_rotation_prior=prior, impute_centroid_prior=centroid)
+                filled[joint, prior, centroid] = f = sk.impute(occluded)
+                rmse = np.sqrt(np.mean(np.sum((f[hidden] - chain.xy[hidden]) ** 2, axis=-1)))
+                assert rmse < 0.05, (joint, prior, centroid)
+    np.testing.assert_allclose(filled[True, True, True], fitted.skeleton_.impute(occluded))  # the defaults
+    assert not np.allclose(filled[True, True, True], filled[False, False, False])
+    assert not np.allclose(filled[True, True, True], filled[True, True, False])
     old = sf.Skeleton.load(path)  # a model saved before the options existed: their defaults
-    del old.params["impute_joint_ends"], old.params["impute_rotation_prior"]
-    np.testing.assert_allclose(old.impute(occluded), filled[True, True])
+    del old.params["impute_joint_ends"], old.params["impute_rotation_prior"], old.params["impute_centroid_prior"]
+    np.testing.assert_allclose(old.impute(occluded), filled[True, True, True])
 
 
 @pytest.mark.parametrize("bad,match", [
@@ -251,6 +254,7 @@ def test_imputation_options_are_parameters_and_survive_saving(tmp_path, chain, f
     ({"max_trees": True}, "max_trees"),
     ({"impute_joint_ends": "yes"}, "impute_joint_ends"),
     ({"impute_rotation_prior": 1}, "impute_rotation_prior"),
+    ({"impute_centroid_prior": "no"}, "impute_centroid_prior"),
     ({"dissolve_scope": "middle"}, "dissolve_scope"),
     ({"labels": [0, 1]}, "labels"),
 ])

@@ -196,6 +196,89 @@ def test_rotation_prior_is_the_map_given_the_neighbours(scene):
     np.testing.assert_allclose(u.rot[:, f], Uu @ Vt, atol=1e-6)
 
 
+def test_centroid_concentration_matches_a_random_walk_whatever_the_turns():
+    # c_f = R_f lbar + t_f takes Gaussian steps of s.d. sigma per coordinate; the sticks turn at
+    # random about their centroids (a flat stick's mirror flips too): lam = D / mean |step|^2.
+    from stickfigure.models.em.impute import centroid_concentration
+
+    rng = np.random.default_rng(4)
+    S, F, sigma = 3, 4000, 0.02
+    R = Rotation.random(S * F, random_state=5).as_matrix()[:, :2, :].reshape(S, F, 2, 3)
+    lbar = rng.normal(size=(S, 3))
+    c = np.cumsum(rng.normal(scale=sigma, size=(S, F, 2)), axis=1)
+    t = c - np.einsum("sfdj,sj->sfd", R, lbar)
+    lam = centroid_concentration(R, t, lbar)
+    steps = np.mean(np.sum(np.diff(c, axis=1) ** 2, axis=-1), axis=1)
+    np.testing.assert_allclose(lam, 2.0 / steps, rtol=1e-9)
+    np.testing.assert_allclose(lam, 1.0 / sigma ** 2, rtol=0.05)
+    assert centroid_concentration(R[:, :1], t[:, :1], lbar).tolist() == [0.0] * S
+    with pytest.raises(ValueError, match="centroids"):
+        centroid_concentration(R, t, lbar[:, :2])
+
+
+def _pooled_moments(weights, targets, sources):
+    """Brute-force weighted centroids and centred moments of one Procrustes problem."""
+    w, a, b = (np.asarray(x, float) for x in (weights, targets, sources))
+    W = w.sum()
+    a_bar, b_bar = w @ a / W, w @ b / W
+    return a_bar, b_bar, (w[:, None] * (a - a_bar)).T @ (b - b_bar), (w[:, None] * (b - b_bar)).T @ (b - b_bar)
+
+
+def test_centroid_prior_is_one_more_source_point(scene):
+    # With lam, each (stick, frame) problem pools its visible points (tau_w), its endpoints (the
+    # series weight, vertex targets) and the stick's centroid lbar, weight lam times the number
+    # of neighbouring frames, target the neighbours' mean centroid: checked against the moments
+    # of that pooled set computed from scratch, and the translation against its closed form.
+    st, obs, pri = _state(scene)
+    U.update_vertices(st)
+    lam = np.linspace(50.0, 5e4, st.n_sticks)
+    a_bar, b_bar, C_ab, C_bb = U._motion_statistics(st, obs, collapse=True, lam=lam)
+    E, F = st.ends_per_stick, st.trans.shape[1]
+    a = (st.alpha / st.beta)[st.vertex_of]
+    wm = st.tau_m * a / (st.tau_m + a)
+    lbar = U.stick_centroids(st)
+    cen = np.einsum("sfdj,sj->sfd", st.rot, lbar) + st.trans
+    for s in range(st.n_sticks):
+        pts = np.flatnonzero(st.labels == s)
+        np.testing.assert_allclose(lbar[s], st.local[pts].mean(axis=0))
+        ends = np.arange(E * s, E * (s + 1))
+        for f in (0, 17, F - 1):
+            nb = [g for g in (f - 1, f + 1) if 0 <= g < F]
+            seen = pts[obs.mask[pts, f] > 0]
+            w = np.r_[np.full(seen.size, st.tau_w), wm[ends], lam[s] * len(nb)]
+            tgt = np.r_[obs.w[seen, f], st.mu_v[st.vertex_of[ends], f], [cen[s, nb].mean(axis=0)]]
+            src = np.r_[st.local[seen], st.ends[ends], [lbar[s]]]
+            want = _pooled_moments(w, tgt, src)
+            for got, ref in zip((a_bar[s, f], b_bar[s, f], C_ab[s, f], C_bb[s, f]), want):
+                np.testing.assert_allclose(got, ref, rtol=1e-8, atol=1e-10)
+    u = st.copy()
+    U.update_motions(u, obs, collapse=True, lam=lam, hold=None)
+    t = a_bar - np.einsum("sfdj,sfj->sfd", u.rot, b_bar)  # the closed form for the new rotations
+    np.testing.assert_allclose(u.trans, t, rtol=1e-9, atol=1e-12)
+
+
+def test_centroid_prior_carries_a_hidden_stick_along_its_path(scene):
+    # A stick that shows no point for a run of frames, and whose endpoints pull with almost no
+    # weight, keeps its centroid on the straight line between the frames either side.
+    st, obs, pri = _state(scene)
+    s, run = 1, np.arange(20, 27)
+    pts = np.flatnonzero(st.labels == s)
+    mask = obs.mask.copy()
+    mask[np.ix_(pts, run)] = 0.0
+    sub = type(obs)(obs.w * mask[..., None], mask)
+    u = st.copy()
+    u.beta[:] = u.alpha / 1e-9  # vertex precisions ~0: joints hold nothing
+    lam = np.full(u.n_sticks, 1e3)
+    for _ in range(400):  # Jacobi sweeps: the run's centroids relax to the interpolation
+        U.update_endpoints(u)
+        U.update_vertices(u)
+        U.update_motions(u, sub, collapse=True, lam=lam, hold=None)
+    c = np.einsum("fdj,j->fd", u.rot[s], U.stick_centroids(u)[s]) + u.trans[s]
+    lo, hi = run[0] - 1, run[-1] + 1
+    x = (run - lo) / (hi - lo)
+    np.testing.assert_allclose(c[run], (1 - x)[:, None] * c[lo] + x[:, None] * c[hi], atol=1e-3)
+
+
 def test_vertex_update_solves_the_chain_exactly(scene):
     st, obs, pri = _state(scene)
     U.update_endpoints(st)

@@ -30,13 +30,13 @@ from ...skeleton import Skeleton
 from ...trajectories import Trajectories
 from ..base import StickEstimator, register
 from .forked import Speculative
-from .impute import frame_scales, refit_motions, rotation_concentration, start_state
+from .impute import centroid_concentration, frame_scales, refit_motions, rotation_concentration, start_state
 from .initialise import fill_gaps, initial_state
 from .model import Observations, Priors, StickState, normalise
 from .refine import misfit_ratios
 from .structure import (EMSettings, Stage, bic, child_rng, extend_frames, learn_structure, run_em,
                         joint_support, search_frames, stick_edges)
-from .updates import mirror_alignment
+from .updates import mirror_alignment, stick_centroids
 
 __all__ = ["EMSkeleton", "fit_stages", "mid_air"]
 
@@ -313,6 +313,12 @@ class EMSkeleton(StickEstimator):
         (default True; docs/em.md section 8): where a few visible points leave a
         stick's pose loosely determined, it stays near its neighbours' rotations.
         False: no prior on motions (the paper's model).
+    impute_centroid_prior : bool
+        In :meth:`impute`, a Gaussian random-walk prior on the image path of each
+        stick's centroid, its precision matched to the trained motions (default True;
+        docs/em.md section 8): a stick hidden for a run of frames follows its own path
+        as well as its joints, which alone can place it far off where a joint is loose
+        or a 2-point stick's turn about its line is free. False: no such prior.
     impute_scale : bool
         In :meth:`impute`, first estimate the figure's image scale in every new frame
         against the learned stick shapes (:func:`.impute.frame_scales`, relative to the
@@ -345,8 +351,9 @@ class EMSkeleton(StickEstimator):
                  max_frames: int | None = 400, oversegment: float | None = 3.5, n_jobs: int | None = None,
                  tau_p: float = 25.0,
                  alpha0: float = 1.0, beta0: float = 1e-3, max_precision: float = 1e6, impute_iter: int = 100,
-                 impute_joint_ends: bool = True, impute_rotation_prior: bool = True, impute_scale: bool = False,
-                 random_state: Any = None, progress: bool = False) -> None:
+                 impute_joint_ends: bool = True, impute_rotation_prior: bool = True,
+                 impute_centroid_prior: bool = True, impute_scale: bool = False, random_state: Any = None,
+                 progress: bool = False) -> None:
         self.n_iter = n_iter
         self.n_iter_merge = n_iter_merge
         self.resample_every = resample_every
@@ -394,6 +401,7 @@ class EMSkeleton(StickEstimator):
         self.impute_iter = impute_iter
         self.impute_joint_ends = impute_joint_ends
         self.impute_rotation_prior = impute_rotation_prior
+        self.impute_centroid_prior = impute_centroid_prior
         self.impute_scale = impute_scale
         self.random_state = random_state
         self.progress = progress
@@ -425,7 +433,8 @@ class EMSkeleton(StickEstimator):
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(map(repr, allowed))}, got {getattr(self, name)!r}")
-        for name in ("impute_joint_ends", "impute_rotation_prior", "impute_scale", "unpair", "split_hubs"):
+        for name in ("impute_joint_ends", "impute_rotation_prior", "impute_centroid_prior", "impute_scale", "unpair",
+                     "split_hubs"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
         if isinstance(self.max_trees, (str, bool)) and self.max_trees != "auto":
@@ -535,8 +544,9 @@ class EMSkeleton(StickEstimator):
         while its translation is updated. With ``impute_joint_ends`` each stick's
         motion and endpoints are updated as one block, and with
         ``impute_rotation_prior`` each rotation is also drawn toward its
-        neighbouring frames' by a prior matched to the trained motions
-        (docs/em.md section 8). With ``impute_scale`` every frame is first brought
+        neighbouring frames' by a prior matched to the trained motions, and with
+        ``impute_centroid_prior`` each stick's centroid toward its neighbouring
+        frames' (docs/em.md section 8). With ``impute_scale`` every frame is first brought
         to the learned shapes' size (:func:`.impute.frame_scales`) and the
         predictions are scaled back.
         """
@@ -555,9 +565,13 @@ def _impute_plain(skeleton: Skeleton, traj: Trajectories) -> np.ndarray:
     kappa = None
     if skeleton.params.get("impute_rotation_prior", True):
         kappa = rotation_concentration(np.asarray(skeleton.motions, float)[..., :3])
-    refit_motions(state, obs, priors, settings, n_iter,
-                  collapse=bool(skeleton.params.get("impute_joint_ends", True)), kappa=kappa)
     centre, scale = norm
+    lam = None
+    if skeleton.params.get("impute_centroid_prior", True):
+        motions = np.asarray(skeleton.motions, float)
+        lam = centroid_concentration(motions[..., :3], motions[..., 3] / scale, stick_centroids(state))
+    refit_motions(state, obs, priors, settings, n_iter,
+                  collapse=bool(skeleton.params.get("impute_joint_ends", True)), kappa=kappa, lam=lam)
     return state.point_predictions() * scale + centre
 
 

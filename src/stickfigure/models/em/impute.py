@@ -18,7 +18,8 @@ from .initialise import interpolate_rotations
 from .model import Observations, Priors, StickState, chain_degree
 from .updates import FLAT_RATIO, MIRROR_TIE, em_sweep, update_endpoints
 
-__all__ = ["start_state", "chain_mirrors", "refit_motions", "heldout_error", "rotation_concentration", "frame_scales"]
+__all__ = ["start_state", "chain_mirrors", "refit_motions", "heldout_error", "rotation_concentration",
+           "centroid_concentration", "frame_scales"]
 
 # A stick's visible points tell its image scale only when they span a plane: their second
 # principal spread must be at least this fraction of the first (a line shows its length
@@ -131,7 +132,8 @@ def start_state(labels: np.ndarray, local: np.ndarray, ends: np.ndarray, vertex_
 
 
 def refit_motions(st: StickState, obs: Observations, priors: Priors, settings: Any, n_iter: int, *,
-                  collapse: bool = False, kappa: np.ndarray | None = None) -> StickState:
+                  collapse: bool = False, kappa: np.ndarray | None = None,
+                  lam: np.ndarray | None = None) -> StickState:
     """``n_iter`` EM iterations with L, K, the structure and the precisions fixed (in place).
 
     In frames where a stick's visible points and its joints (endpoints on a vertex
@@ -146,7 +148,8 @@ def refit_motions(st: StickState, obs: Observations, priors: Priors, settings: A
     points can sit in the mirror branch, and the joints (endpoint terms) tell the
     branches apart. ``collapse`` updates motions and endpoints as one block, and
     ``kappa`` (S,) adds a smoothness prior on each stick's rotations
-    (:func:`.updates.update_motions`, :func:`rotation_concentration`; docs/em.md section 8).
+    (:func:`.updates.update_motions`, :func:`rotation_concentration`; docs/em.md section 8),
+    and ``lam`` (S,) one on each stick's centroid (:func:`centroid_concentration`).
     """
     # A joint (an endpoint on a vertex shared with another stick) pins a point of the stick too.
     joined = st.joints_per_stick()
@@ -155,7 +158,7 @@ def refit_motions(st: StickState, obs: Observations, priors: Priors, settings: A
     for it in range(n_iter):
         em_sweep(st, obs, priors, precisions=False, local=False, n_procrustes=settings.n_procrustes,
                  hold=hold, global_rotations=it % every == 0 and it < n_iter - every, collapse=collapse,
-                 kappa=kappa)
+                 kappa=kappa, lam=lam)
     return st
 
 
@@ -269,6 +272,44 @@ def rotation_concentration(rot: np.ndarray) -> np.ndarray:
         return np.zeros(S)
     tr = np.einsum("sfij,sfij->sf", rot[:, 1:], rot[:, :-1])
     return 1.0 / np.maximum(np.mean(D - tr, axis=1), 1e-12)
+
+
+def centroid_concentration(rot: np.ndarray, trans: np.ndarray, centroids: np.ndarray) -> np.ndarray:
+    """Precision lam (S,) of a Gaussian random walk on each stick's centroid, from motions.
+
+    The prior ``p(c_f | c_f-1) ~ exp(-lam |c_f - c_f-1|^2 / 2)`` on the centroid
+    ``c_f = R_f lbar + t_f`` of the stick's points in the image (D coordinates), matched to
+    the trained motions: for steps of variance sigma^2 per coordinate ``E|c_f - c_f-1|^2 =
+    D sigma^2``, so ``lam = 1 / sigma^2 = D / E|c_f - c_f-1|^2``. The centroid, unlike the
+    local origin, does not move when a flat stick's pose flips to its mirror image or a
+    stick turns about its own points (docs/em.md section 8).
+
+    Parameters
+    ----------
+    rot : ndarray, shape (S, F, D, 3)
+        Rotations with orthonormal rows (the trained motions).
+    trans : ndarray, shape (S, F, D)
+        Translations, in the units ``lam`` is wanted in.
+    centroids : ndarray, shape (S, 3)
+        Each stick's mean local coordinates, same units.
+
+    Returns
+    -------
+    ndarray, shape (S,)
+        0 where there are fewer than two frames.
+    """
+    rot, trans, centroids = (np.asarray(a, float) for a in (rot, trans, centroids))
+    if rot.ndim != 4 or rot.shape[-1] != 3:
+        raise ValueError(f"rot must have shape (S, F, D, 3), got {rot.shape}")
+    S, F, D, _ = rot.shape
+    if trans.shape != (S, F, D) or centroids.shape != (S, 3):
+        raise ValueError(f"trans must have shape {(S, F, D)} and centroids {(S, 3)}, got {trans.shape} and "
+                         f"{centroids.shape}")
+    if F < 2:
+        return np.zeros(S)
+    c = np.einsum("sfdj,sj->sfd", rot, centroids) + trans
+    step = np.mean(np.sum(np.diff(c, axis=1) ** 2, axis=-1), axis=1)
+    return D / np.maximum(step, 1e-12)
 
 
 def frame_scales(labels: np.ndarray, local: np.ndarray, xy: np.ndarray, *,

@@ -137,7 +137,7 @@ def update_phi(st: StickState, priors: Priors) -> None:
 
 
 def _motion_statistics(st: StickState, obs: Observations, collapse: bool = False,
-                       kappa: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+                       kappa: np.ndarray | None = None, lam: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
     """Weighted centroids and centred second moments of each (stick, frame) Procrustes problem.
 
     Sources are the stick's visible points (weight tau_w, target w, source l)
@@ -147,6 +147,10 @@ def _motion_statistics(st: StickState, obs: Observations, collapse: bool = False
     ``tau_m a_g / (tau_m + a_g)``, target the vertex mean mu(v_g), source k.
     ``kappa`` (S,): a rotation prior ``kappa tr(R (R_f-1 + R_f+1)^T)`` on each frame given its
     neighbours' current rotations, which adds ``kappa (R_f-1 + R_f+1)`` to C_ab.
+    ``lam`` (S,): a Gaussian random-walk prior ``lam |c_f - c_f-1|^2`` on each stick's centroid
+    ``c_f = R_f lbar + t_f`` (``lbar`` the mean of its points' local coordinates), given the
+    neighbours' current centroids: one more source point, ``lbar`` with weight ``lam`` times the
+    number of neighbours and the neighbours' mean centroid as its target.
 
     Returns
     -------
@@ -191,7 +195,44 @@ def _motion_statistics(st: StickState, obs: Observations, collapse: bool = False
         nb[:, 1:] += st.rot[:, :-1]
         nb[:, :-1] += st.rot[:, 1:]
         C_ab = C_ab + np.asarray(kappa, float)[:, None, None, None] * nb
+    if lam is not None and F > 1:
+        W = tw * n + np.broadcast_to(w_sum, (S,))[:, None]  # the pooled weight of every problem
+        a_bar, b_bar, C_ab, C_bb = _with_centroid_prior(st, np.asarray(lam, float), W, a_bar, b_bar, C_ab, C_bb)
     return a_bar, b_bar, C_ab, C_bb
+
+
+def stick_centroids(st: StickState) -> np.ndarray:
+    """(S, 3) mean local coordinates of each stick's points (the centroid the prior follows)."""
+    S = st.trans.shape[0]
+    cnt = np.maximum(np.bincount(st.labels, minlength=S), 1).astype(float)
+    return np.stack([np.bincount(st.labels, weights=st.local[:, j], minlength=S) for j in range(3)], axis=1) \
+        / cnt[:, None]
+
+
+def _with_centroid_prior(st: StickState, lam: np.ndarray, W: np.ndarray, a_bar: np.ndarray, b_bar: np.ndarray,
+                         C_ab: np.ndarray, C_bb: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The Procrustes moments with each stick's centroid pulled toward its neighbours' (``lam``, (S,)).
+
+    One source point ``lbar`` (the stick's centroid in local coordinates), weight
+    ``omega = lam * (number of neighbouring frames)``, target the neighbours' mean centroid
+    ``y``, pooled with the others (total weight ``W`` (S, F)): the centred moments gain
+    ``W omega / (W + omega) (y - a_bar)(lbar - b_bar)^T`` (a point added to a weighted mean).
+    """
+    S, F, D = st.trans.shape
+    lbar = stick_centroids(st)
+    c = np.einsum("sfdj,sj->sfd", st.rot, lbar) + st.trans  # (S, F, D) current centroids
+    y = np.zeros_like(c)
+    y[:, 1:] += c[:, :-1]
+    y[:, :-1] += c[:, 1:]
+    k = np.full(F, 2.0)
+    k[0] = k[-1] = 1.0
+    y /= k[None, :, None]
+    omega = lam[:, None] * k[None, :]  # (S, F)
+    Wn = W + omega
+    da, db = y - a_bar, lbar[:, None, :] - b_bar  # (S, F, D), (S, F, 3)
+    g = (W * omega / Wn)[..., None, None]
+    return (a_bar + (omega / Wn)[..., None] * da, b_bar + (omega / Wn)[..., None] * db,
+            C_ab + g * da[..., :, None] * db[..., None, :], C_bb + g * db[..., :, None] * db[..., None, :])
 
 
 def quat_to_rot(q: np.ndarray) -> np.ndarray:
@@ -558,7 +599,8 @@ def align_mirrors(st: StickState, R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndar
 def update_motions(st: StickState, obs: Observations, *, n_procrustes: int = 1, newton: bool = False,
                    global_search: bool = False, sticks: np.ndarray | None = None, use_polar: bool = True,
                    hold: np.ndarray | None | str = "auto", n_newton: int = 2, only_mirrors: bool = False,
-                   collapse: bool = False, kappa: np.ndarray | None = None) -> None:
+                   collapse: bool = False, kappa: np.ndarray | None = None,
+                   lam: np.ndarray | None = None) -> None:
     """Rotations and translations of every stick in every frame, jointly.
 
     The weighted problem ``min_{R,t} sum_n w_n |a_n - R b_n - t|^2`` over the
@@ -595,11 +637,14 @@ def update_motions(st: StickState, obs: Observations, *, n_procrustes: int = 1, 
     (imputation only; :func:`.impute.rotation_concentration`): each frame's rotation
     is the MAP given its neighbours' current ones, all frames at once (a Jacobi
     step; frames the data cannot determine are held as above, so no frame is moved
-    by its neighbours alone).
+    by its neighbours alone). ``lam`` (S,) adds a Gaussian random-walk prior on each
+    stick's centroid, also given its neighbours' (imputation only;
+    :func:`.impute.centroid_concentration`): a stick that shows no point in a run of frames
+    then follows its own path as well as its joints.
     """
     if isinstance(hold, str):
         hold = underdetermined_frames(st, obs) if hold == "auto" else None
-    a_bar, b_bar, C_ab, C_bb = _motion_statistics(st, obs, collapse, kappa)
+    a_bar, b_bar, C_ab, C_bb = _motion_statistics(st, obs, collapse, kappa, lam)
     q0 = st._quat if st._quat is not None and st._quat_of is st.rot else rot_to_quat(complete_rotation(st.rot))
     R_new, q_new = procrustes_step(st.rot, C_ab, C_bb, n_outer=n_procrustes, quat=q0)
     old = _rotation_energy(st.rot, C_ab, C_bb)
@@ -693,7 +738,7 @@ def update_precisions(st: StickState, obs: Observations, priors: Priors) -> None
 def em_sweep(st: StickState, obs: Observations, priors: Priors, *, precisions: bool = True,
              local: bool = True, n_procrustes: int = 1, global_rotations: bool = False,
              use_polar: bool = True, hold: np.ndarray | None | str = "auto",
-             collapse: bool = False, kappa: np.ndarray | None = None) -> None:
+             collapse: bool = False, kappa: np.ndarray | None = None, lam: np.ndarray | None = None) -> None:
     """One EM iteration: E-step (endpoints, vertices, phi) then M-step (motions, L, K, precisions).
 
     Parameters
@@ -712,12 +757,14 @@ def em_sweep(st: StickState, obs: Observations, priors: Priors, *, precisions: b
         Fit motions and endpoint posteriors jointly (see :func:`update_motions`).
     kappa : ndarray, shape (S,), optional
         A smoothness prior on each stick's rotations (see :func:`update_motions`).
+    lam : ndarray, shape (S,), optional
+        A smoothness prior on each stick's centroid (see :func:`update_motions`).
     """
     update_endpoints(st)
     update_vertices(st)
     update_phi(st, priors)
     update_motions(st, obs, n_procrustes=n_procrustes, global_search=global_rotations, use_polar=use_polar,
-                   hold=hold, collapse=collapse, kappa=kappa)
+                   hold=hold, collapse=collapse, kappa=kappa, lam=lam)
     if local:
         update_local(st, obs, priors)
         update_ends(st, priors)
