@@ -28,7 +28,8 @@ em-imputation-mocap-random-views
     em-imputation-mocap's protocol (30 Hz) on the takes seen from the random cameras of
     em-structure-mocap-random-views (2 a take, 6 with ``ctx.full``), one scene per camera
     with its own occlusion draw; each row counts the scenes where em is below each baseline.
-    ``ctx.full`` adds the takes at their own 120 Hz.
+    Also another subject: the CMU 41 markers placed on the CMU 131_01 walk (as in
+    em-structure-cmu41-virtual). ``ctx.full`` adds the takes at their own 120 Hz.
 em-imputation-mocap-perspective
     em-imputation-mocap's protocol (30 Hz) on the takes seen through a pinhole camera 4
     scene radii from the scene centre (as em-structure-mocap-perspective), em with its
@@ -335,6 +336,11 @@ def case_imputation_mocap_random_views(ctx: Context) -> Iterator[dict[str, Any]]
     for native in (False, True) if ctx.full else (False,):
         per_take: dict[str, list[tuple[int, Trajectories]]] = {}
         takes = _mocap_takes(ctx, native)  # read once, projected from every camera
+        placed = Path(ctx.data_dir) / "mocap" / "131_01.bvh"
+        if placed.exists():  # another subject and motion, the same marker set
+            take = sf.load(placed, marker_set="cmu41")
+            step = 1 if native else max(1, int(round((take.frame_rate or 120.0) / 30.0)))
+            takes.append(("131_01.bvh, CMU 41 markers placed,", take.subsample(step)))
         for v, view in enumerate(views):
             for k, (name, take) in enumerate(takes):
                 per_take.setdefault(name, []).append((ctx.seed + 100 * k + v, _seen(ctx, take, view)))
