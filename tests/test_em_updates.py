@@ -279,6 +279,35 @@ def test_centroid_prior_carries_a_hidden_stick_along_its_path(scene):
     np.testing.assert_allclose(c[run], (1 - x)[:, None] * c[lo] + x[:, None] * c[hi], atol=1e-3)
 
 
+def test_rotation_prior_releases_held_sticks_of_three_points(scene, monkeypatch):
+    # refit_motions holds a stick's rotation where its visible points and joints number fewer
+    # than 3. With the rotation prior (kappa) only sticks of 1 or 2 points stay held: a larger
+    # one is placed by its neighbours' rotations, its joints and its path (docs/em.md section 8).
+    from stickfigure.models.em import impute as I
+
+    traj, obs = scene
+    labels = traj.labels_true.copy()
+    pair = np.flatnonzero(labels == 0)[:2]
+    labels[pair] = labels.max() + 1  # a 2-point stick
+    st = initial_state(obs, labels, int(labels.max()) + 1, Priors(), np.random.default_rng(0))
+    mask = obs.mask.copy()
+    mask[:, 10:14] = 0.0  # nothing seen in four frames: every stick under-determined there
+    sub = type(obs)(obs.w * mask[..., None], mask)
+    seen = []
+    real = I.em_sweep
+    monkeypatch.setattr(I, "em_sweep", lambda *a, **kw: (seen.append(kw["hold"]), real(*a, **kw))[1])
+    settings = S.EMSettings(resample_every=0)
+    size = np.bincount(st.labels)
+    for kappa in (None, np.full(st.n_sticks, 5.0)):
+        seen.clear()
+        I.refit_motions(st.copy(), sub, Priors(), settings, 1, collapse=True, kappa=kappa)
+        old_rule = st.design(sub).n + st.joints_per_stick()[:, None] < 3
+        assert old_rule[:, 10:14].all()
+        want = old_rule if kappa is None else old_rule & (size < 3)[:, None]
+        np.testing.assert_array_equal(seen[0], want)
+    assert seen[0][size < 3][:, 10:14].all() and not seen[0][size >= 3].any()
+
+
 def test_vertex_update_solves_the_chain_exactly(scene):
     st, obs, pri = _state(scene)
     U.update_endpoints(st)

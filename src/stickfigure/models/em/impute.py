@@ -139,7 +139,8 @@ def refit_motions(st: StickState, obs: Observations, priors: Priors, settings: A
     In frames where a stick's visible points and its joints (endpoints on a vertex
     shared with another stick) number fewer than 3, its rotation keeps its start (the
     model has no prior on motions, so such a frame cannot pin it down: a turn about
-    the line through two points, a mirror) while its translation is updated. A
+    the line through two points, a mirror) while its translation is updated; with
+    ``kappa`` only sticks of 1 or 2 points are so held. A
     2-point stick with both ends jointed is thus fitted in every frame that shows one
     of its points (holding it instead kept its rotation at the interpolation between
     frames that show both, which a long occlusion makes a guess).
@@ -154,6 +155,12 @@ def refit_motions(st: StickState, obs: Observations, priors: Priors, settings: A
     # A joint (an endpoint on a vertex shared with another stick) pins a point of the stick too.
     joined = st.joints_per_stick()
     hold = st.design(obs).n + joined[:, None] < 3
+    if kappa is not None:
+        # With the rotation prior every frame has a posterior. A stick of 3 or more points is then
+        # released: its neighbours' rotations, its joints and its path place it. One of 1-2
+        # points turns freely about its line but for that prior, which training's mirror flips
+        # can make weak, and stays held (docs/em.md section 8).
+        hold &= (np.bincount(st.labels, minlength=st.n_sticks) < 3)[:, None]
     every = max(int(settings.resample_every), 1) if settings.resample_every else 10
     for it in range(n_iter):
         em_sweep(st, obs, priors, precisions=False, local=False, n_procrustes=settings.n_procrustes,
