@@ -636,8 +636,8 @@ def update_motions(st: StickState, obs: Observations, *, n_procrustes: int = 1, 
     ``kappa`` (S,) adds a von Mises-Fisher chain prior on each stick's rotations
     (imputation only; :func:`.impute.rotation_concentration`): each frame's rotation
     is the MAP given its neighbours' current ones, all frames at once (a Jacobi
-    step; frames the data cannot determine are held as above, so no frame is moved
-    by its neighbours alone). ``lam`` (S,) adds a Gaussian random-walk prior on each
+    step; frames in ``hold`` are held as above; :func:`.impute.refit_motions` holds
+    only 1-2 point sticks when it passes ``kappa``). ``lam`` (S,) adds a Gaussian random-walk prior on each
     stick's centroid, also given its neighbours' (imputation only;
     :func:`.impute.centroid_concentration`): a stick that shows no point in a run of frames
     then follows its own path as well as its joints.
