@@ -295,7 +295,12 @@ def test_rotation_prior_releases_held_sticks_of_three_points(scene, monkeypatch)
     sub = type(obs)(obs.w * mask[..., None], mask)
     seen = []
     real = I.em_sweep
-    monkeypatch.setattr(I, "em_sweep", lambda *a, **kw: (seen.append(kw["hold"]), real(*a, **kw))[1])
+
+    def recording_sweep(*args, **kwargs):  # the hold that refit_motions passes to each sweep
+        seen.append(kwargs["hold"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(I, "em_sweep", recording_sweep)
     settings = S.EMSettings(resample_every=0)
     size = np.bincount(st.labels)
     for kappa in (None, np.full(st.n_sticks, 5.0)):
