@@ -293,10 +293,13 @@ def _mocap_takes(ctx: Context, native: bool = False) -> list[tuple[str, Trajecto
         path = Path(ctx.data_dir) / "mocap" / name
         if not path.exists():
             continue
-        traj = sf.load(path).drop_unobserved()
-        step = 1 if native else max(1, int(round((traj.frame_rate or 120.0) / 30.0)))
-        out.append((name, traj.subsample(step)))
+        out.append((name, _at_rate(sf.load(path).drop_unobserved(), native)))
     return out
+
+
+def _at_rate(take: Trajectories, native: bool) -> Trajectories:
+    """``take`` subsampled to about 30 Hz, or as it is with ``native``."""
+    return take.subsample(1 if native else max(1, int(round((take.frame_rate or 120.0) / 30.0))))
 
 
 def _seen(ctx: Context, take: Trajectories, view: str | tuple[float, float],
@@ -338,9 +341,8 @@ def case_imputation_mocap_random_views(ctx: Context) -> Iterator[dict[str, Any]]
         takes = _mocap_takes(ctx, native)  # read once, projected from every camera
         placed = Path(ctx.data_dir) / "mocap" / "131_01.bvh"
         if placed.exists():  # another subject and motion, the same marker set
-            take = sf.load(placed, marker_set="cmu41")
-            step = 1 if native else max(1, int(round((take.frame_rate or 120.0) / 30.0)))
-            takes.append(("131_01.bvh, CMU 41 markers placed,", take.subsample(step)))
+            takes.append(("131_01.bvh, CMU 41 markers placed,", _at_rate(sf.load(placed, marker_set="cmu41"),
+                                                                          native)))
         for v, view in enumerate(views):
             for k, (name, take) in enumerate(takes):
                 per_take.setdefault(name, []).append((ctx.seed + 100 * k + v, _seen(ctx, take, view)))

@@ -191,14 +191,19 @@ def _motion_statistics(st: StickState, obs: Observations, collapse: bool = False
                            c(t_sum, dtype=float), c(k_sum, dtype=float), c(e_cross, dtype=float), c(kk, dtype=float),
                            a_bar, b_bar, C_ab, C_bb)
     if kappa is not None and F > 1:
-        nb = np.zeros_like(st.rot)
-        nb[:, 1:] += st.rot[:, :-1]
-        nb[:, :-1] += st.rot[:, 1:]
-        C_ab = C_ab + np.asarray(kappa, float)[:, None, None, None] * nb
+        C_ab = C_ab + np.asarray(kappa, float)[:, None, None, None] * _neighbour_sum(st.rot)
     if lam is not None and F > 1:
         W = tw * n + np.broadcast_to(w_sum, (S,))[:, None]  # the pooled weight of every problem
         a_bar, b_bar, C_ab, C_bb = _with_centroid_prior(st, np.asarray(lam, float), W, a_bar, b_bar, C_ab, C_bb)
     return a_bar, b_bar, C_ab, C_bb
+
+
+def _neighbour_sum(x: np.ndarray) -> np.ndarray:
+    """(S, F, ...) sum of each frame's neighbours in time, ``x[:, f-1] + x[:, f+1]`` (one at either end)."""
+    nb = np.zeros_like(x)
+    nb[:, 1:] += x[:, :-1]
+    nb[:, :-1] += x[:, 1:]
+    return nb
 
 
 def stick_centroids(st: StickState) -> np.ndarray:
@@ -221,12 +226,9 @@ def _with_centroid_prior(st: StickState, lam: np.ndarray, W: np.ndarray, a_bar: 
     S, F, D = st.trans.shape
     lbar = stick_centroids(st)
     c = np.einsum("sfdj,sj->sfd", st.rot, lbar) + st.trans  # (S, F, D) current centroids
-    y = np.zeros_like(c)
-    y[:, 1:] += c[:, :-1]
-    y[:, :-1] += c[:, 1:]
-    k = np.full(F, 2.0)
+    k = np.full(F, 2.0)  # neighbouring frames
     k[0] = k[-1] = 1.0
-    y /= k[None, :, None]
+    y = _neighbour_sum(c) / k[None, :, None]
     omega = lam[:, None] * k[None, :]  # (S, F)
     Wn = W + omega
     da, db = y - a_bar, lbar[:, None, :] - b_bar  # (S, F, D), (S, F, 3)
@@ -637,10 +639,10 @@ def update_motions(st: StickState, obs: Observations, *, n_procrustes: int = 1, 
     (imputation only; :func:`.impute.rotation_concentration`): each frame's rotation
     is the MAP given its neighbours' current ones, all frames at once (a Jacobi
     step; frames in ``hold`` are held as above; :func:`.impute.refit_motions` holds
-    only 1-2 point sticks when it passes ``kappa``). ``lam`` (S,) adds a Gaussian random-walk prior on each
-    stick's centroid, also given its neighbours' (imputation only;
-    :func:`.impute.centroid_concentration`): a stick that shows no point in a run of frames
-    then follows its own path as well as its joints.
+    only 1-2 point sticks when it passes ``kappa``). ``lam`` (S,) adds a Gaussian
+    random-walk prior on each stick's centroid, also given its neighbours' (imputation
+    only; :func:`.impute.centroid_concentration`): a stick that shows no point in a run
+    of frames then follows its own path as well as its joints.
     """
     if isinstance(hold, str):
         hold = underdetermined_frames(st, obs) if hold == "auto" else None
