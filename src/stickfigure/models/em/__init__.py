@@ -66,9 +66,8 @@ class EMSkeleton(StickEstimator):
         Endpoints per stick. The paper's sticks have 2, so a stick can take part in
         at most two distinct joints; a part with a third joint away from its ends
         (a pelvis with two hips and a spine, a limb hanging from the middle of
-        another) then gets a loose joint or none. The default 4 gives a human
-        thorax its four (neck, two shoulders, lumbar); an unused endpoint costs
-        nothing in model comparison. 2 is the paper's model (docs/em.md section 1).
+        another) then gets a loose joint or none. The default 3 allows that; 2 is
+        the paper's model.
     endpoint_init : {"axis", "centroid"}
         Start a stick's endpoints along its principal axis (the first two at its
         ends), or all at its centroid (the paper).
@@ -336,7 +335,7 @@ class EMSkeleton(StickEstimator):
     min_frames = 3
 
     def __init__(self, n_iter: int = 200, n_iter_merge: int = 20, resample_every: int = 10,
-                 resample: str = "sample", selection: str = "bic", n_ends: int = 4,
+                 resample: str = "sample", selection: str = "bic", n_ends: int = 3,
                  endpoint_init: str = "axis",
                  merge_init: str = "joint", merge_scope: str = "local", max_candidates: int | None = 40,
                  max_merges: int | None = None, merge_baseline: bool = True, n_polish: int = 3,

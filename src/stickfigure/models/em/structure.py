@@ -99,7 +99,7 @@ class EMSettings:
     reuse_scores: bool = True
     refine_sticks: bool = True
     endpoint_init: str = "axis"
-    n_ends: int = 4
+    n_ends: int = 3
     articulated_rounds: int = 4
     split_axes: int = 1
     dissolve_points: int = 3
