@@ -124,3 +124,31 @@ def test_marker_gaps_name_bad_arguments():
         sf.synthetic.marker_gaps(traj, 0, seed=0)
     with pytest.raises(TypeError, match="Trajectories"):
         sf.synthetic.marker_gaps(traj.xy, 2, seed=0)
+
+
+@pytest.mark.parametrize("n_limbs", [1, 4, 6])
+def test_star_ground_truth(n_limbs):
+    t = sf.synthetic.star(n_limbs=n_limbs, frames=40, noise=0.0, seed=2, hub_points=8, limb_points=5)
+    assert t.n_parts_true == n_limbs + 1 and t.edges_true == [(0, k) for k in range(1, n_limbs + 1)]
+    assert np.bincount(t.labels_true).tolist() == [8] + [5] * n_limbs
+    assert t.joints_true.shape == (n_limbs, 40, 2)
+    # Each joint moves rigidly with both its sticks: added to either stick's points, the
+    # 2D trajectories keep the rank of one rigid body under an affine camera (<= 4 centred: 3).
+    for e, (a, b) in enumerate(t.edges_true):
+        for s in (a, b):
+            q = np.concatenate([t.xy[t.labels_true == s], t.joints_true[e][None]])
+            W = q.transpose(1, 2, 0).reshape(-1, q.shape[0])
+            sv = np.linalg.svd(W - W.mean(axis=1, keepdims=True), compute_uv=False)
+            assert sv[3] < 1e-8 * sv[0]
+    # No two joints coincide on the hub.
+    d = np.linalg.norm(t.joints_true[:, None] - t.joints_true[None], axis=-1).min(axis=-1)
+    assert n_limbs == 1 or d[~np.eye(n_limbs, dtype=bool)].min() > 0.01
+
+
+def test_star_names_bad_arguments():
+    with pytest.raises(ValueError, match="n_limbs"):
+        sf.synthetic.star(n_limbs=0)
+    with pytest.raises(ValueError, match="hub_points"):
+        sf.synthetic.star(hub_points=0)
+    with pytest.raises(ValueError, match="frames"):
+        sf.synthetic.star(frames=1)

@@ -21,7 +21,7 @@ from scipy.spatial.transform import Rotation
 from ._validation import check_positive, check_random_state
 from .trajectories import Trajectories, view_rotation
 
-__all__ = ["arm", "random_figure", "walker", "rigid_bodies", "occlude", "marker_gaps", "FigureSpec"]
+__all__ = ["arm", "random_figure", "star", "walker", "rigid_bodies", "occlude", "marker_gaps", "FigureSpec"]
 
 
 @dataclass
@@ -242,6 +242,84 @@ def random_figure(
     pts, joints = _forward_kinematics(spec, rel, root_t)
     meta = {"generator": "random_figure", "n_sticks": n_sticks, "planar": planar}
     return _finish(pts, joints, spec, rng, noise, view, planar, meta, frame_rate=30.0)
+
+
+def star(
+    n_limbs: int = 4,
+    frames: int = 120,
+    noise: float = 0.01,
+    seed: Any = None,
+    *,
+    hub_points: int = 10,
+    limb_points: int = 5,
+    view: tuple[float, float] | None = None,
+    amplitude: float = 0.9,
+) -> Trajectories:
+    """A hub stick with ``n_limbs`` one-stick limbs: a torso with head and limbs, or a quadruped's body.
+
+    :func:`random_figure` uses each attachment point once, so none of its sticks
+    is on more than three joints; a body's torso is on four (neck, shoulders,
+    lumbar) and a quadruped's on five or six. Here every limb hangs from its own
+    point of the hub: its two ends first, then points along it, alternately to
+    either side of its axis (0.2 of its length off it, so no two joints coincide).
+    The hub moves freely; each limb turns about its joint with a smooth random
+    3-DOF rotation. Points are scattered rigidly around each stick as in
+    :func:`random_figure`, and the figure is seen by a scaled-orthographic camera.
+
+    Parameters
+    ----------
+    n_limbs : int
+        Number of limbs (>= 1); stick 0 is the hub, sticks 1 to ``n_limbs`` the limbs.
+    frames : int
+        Number of frames (>= 2).
+    noise : float
+        Gaussian noise std as a fraction of the mean stick length.
+    seed : None, int or Generator
+    hub_points, limb_points : int
+        Points on the hub and on each limb (>= 1).
+    view : (azimuth, elevation) in degrees, optional
+        Camera direction; random (elevation in [-20, 60]) when omitted.
+    amplitude : float
+        Typical joint rotation amplitude in radians.
+
+    Returns
+    -------
+    Trajectories
+        2D trajectories with ``labels_true``, ``edges_true`` and ``joints_true``.
+    """
+    n_limbs = check_positive(n_limbs, "n_limbs", integer=True)
+    frames = check_positive(frames, "frames", integer=True)
+    hub_points = check_positive(hub_points, "hub_points", integer=True)
+    limb_points = check_positive(limb_points, "limb_points", integer=True)
+    if frames < 2:
+        raise ValueError(f"frames must be >= 2, got {frames}")
+    check_positive(noise, "noise", allow_zero=True)
+    rng = check_random_state(seed)
+    S = n_limbs + 1
+    lengths = rng.uniform(0.7, 1.3, size=S)
+    lengths[0] = 1.5  # the hub: room for its joints
+    parent = np.concatenate([[-1], np.zeros(n_limbs, np.int64)])
+    attach = np.zeros((S, 3))
+    inner = np.linspace(0.0, 1.0, max(n_limbs - 2, 0) + 2)[1:-1]
+    fractions = np.concatenate([[0.0, 1.0], inner])[:n_limbs]
+    for k, f in enumerate(fractions):
+        side = 0.0 if k < 2 else (0.2 if k % 2 == 0 else -0.2) * lengths[0]
+        attach[k + 1] = [f * lengths[0], side, 0.0]
+    counts = np.concatenate([[hub_points], np.full(n_limbs, limb_points)])
+    labels = np.repeat(np.arange(S), counts)
+    local = np.concatenate([_scatter_points(rng, lengths[s], int(counts[s]), False, 0.25) for s in range(S)])
+    spec = FigureSpec(parent=parent, attach=attach, lengths=lengths, local=local, labels=labels)
+    rest = rng.uniform(-np.pi, np.pi, size=(S, 1, 3))
+    motion = _smooth_rotvecs(rng, S, frames, amplitude, False)
+    motion[0] *= 0.5  # the hub turns less than the limbs
+    rel = Rotation.from_rotvec((rest + motion).reshape(-1, 3)).as_matrix().reshape(S, frames, 3, 3)
+    t = np.linspace(0, 1, frames)[:, None]
+    root_t = rng.normal(size=(1, 3)) * 0.5 * t + 0.3 * np.sin(
+        2 * np.pi * rng.uniform(0.3, 1.0, size=(1, 3)) * t + rng.uniform(0, 6.3, size=(1, 3)))
+    pts, joints = _forward_kinematics(spec, rel, root_t)
+    meta = {"generator": "star", "n_sticks": S, "planar": False}
+    return _finish(pts, joints, spec, rng, noise, view, False, meta, frame_rate=30.0,
+                   part_names=["hub"] + [f"limb{k + 1}" for k in range(n_limbs)])
 
 
 def arm(
