@@ -32,7 +32,7 @@ from ..base import StickEstimator, register
 from .forked import Speculative
 from .impute import centroid_concentration, frame_scales, refit_motions, rotation_concentration, start_state
 from .initialise import fill_gaps, initial_state
-from .model import Observations, Priors, StickState, normalise
+from .model import Observations, Priors, StickState, hub_endpoints, normalise
 from .refine import misfit_ratios
 from .structure import (EMSettings, Stage, bic, child_rng, extend_frames, learn_structure, run_em,
                         joint_support, search_frames, stick_edges)
@@ -68,6 +68,14 @@ class EMSkeleton(StickEstimator):
         (a pelvis with two hips and a spine, a limb hanging from the middle of
         another) then gets a loose joint or none. The default 3 allows that; 2 is
         the paper's model.
+    hub_end : bool
+        One endpoint more for the sticks with the most points, which alone may use
+        it (``StickState.joint_capacity``): a torso on four joints (neck, shoulders,
+        lumbar) or a body with four limbs, while every other stick keeps
+        ``n_ends``. Default False: on the recorded CMU take it gave fewer body trees
+        over random cameras, though more on a walk with rigid markers (docs/em.md
+        sections 6 and 11). Turn it on for a figure whose largest part holds more
+        joints than ``n_ends`` (:func:`stickfigure.synthetic.star`).
     endpoint_init : {"axis", "centroid"}
         Start a stick's endpoints along its principal axis (the first two at its
         ends), or all at its centroid (the paper).
@@ -225,6 +233,13 @@ class EMSkeleton(StickEstimator):
         as in the search, and the best one is kept when it is not the old link and
         the selection criterion improves after EM (the greedy search never undoes a
         merge; docs/em.md section 6). False: off.
+    spare_end : bool
+        The sub-tree moves run with one more endpoint per stick, so that a stick on
+        a joint at every endpoint (a thorax holding the lumbar link and both
+        shoulders) can still take a part the search hung elsewhere (the head on the
+        pelvis). Where no stick ends on more joints than it had endpoints, the spare
+        endpoints are removed again (docs/em.md section 6). Default False: the moves
+        use the search's endpoints.
     max_trees : int, "auto" or None
         The most separate figures (trees) the skeleton may have. The search selects
         a forest where no joint between its trees pays by the criterion, which is
@@ -346,6 +361,7 @@ class EMSkeleton(StickEstimator):
                  dissolve_scope: str = "all",
                  remerge: bool = True, split_dissolved: int = 4,
                  unpair: bool = True, bridge_points: int = 2, split_hubs: bool = True, reattach: bool = True,
+                 spare_end: bool = False, hub_end: bool = False,
                  max_trees: int | str | None = "auto", retry_mid_air: float | None = None,
                  merge_rank: str = "residual", align_mirrors: bool = True,
                  max_frames: int | None = 400, oversegment: float | None = 3.5, n_jobs: int | None = None,
@@ -387,6 +403,8 @@ class EMSkeleton(StickEstimator):
         self.bridge_points = bridge_points
         self.split_hubs = split_hubs
         self.reattach = reattach
+        self.spare_end = spare_end
+        self.hub_end = hub_end
         self.max_trees = max_trees
         self.retry_mid_air = retry_mid_air
         self.merge_rank = merge_rank
@@ -448,8 +466,9 @@ class EMSkeleton(StickEstimator):
                              f"got {self.retry_mid_air!r}")
         if self.merge_rank not in ("objective", "residual"):
             raise ValueError(f"merge_rank must be 'objective' or 'residual', got {self.merge_rank!r}")
-        if not isinstance(self.align_mirrors, (bool, np.bool_)):
-            raise ValueError(f"align_mirrors must be True or False, got {self.align_mirrors!r}")
+        for name in ("align_mirrors", "spare_end", "hub_end"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
         for name in ("max_candidates", "max_merges", "max_sticks", "max_frames", "n_jobs"):
             v = getattr(self, name)
             if v is not None:
@@ -477,7 +496,8 @@ class EMSkeleton(StickEstimator):
                               remerge=bool(self.remerge), split_dissolved=int(self.split_dissolved),
                               unpair=bool(self.unpair),
                               bridge_points=int(self.bridge_points), split_hubs=bool(self.split_hubs),
-                              reattach=bool(self.reattach),
+                              reattach=bool(self.reattach), spare_end=bool(self.spare_end),
+                              hub_end=bool(self.hub_end),
                               max_trees=None if self.max_trees in (None, "auto") else int(self.max_trees),
                               endpoint_init=self.endpoint_init, n_ends=int(self.n_ends),
                               merge_rank=str(self.merge_rank), align_mirrors=bool(self.align_mirrors))
@@ -512,14 +532,15 @@ class EMSkeleton(StickEstimator):
 
     def _search(self, traj: Trajectories, settings: EMSettings, priors: Priors,
                 rng: np.random.Generator) -> Skeleton:
-        with mirror_alignment(settings.align_mirrors):
+        with mirror_alignment(settings.align_mirrors), hub_endpoints(settings.hub_end):
             return self._search_stages(traj, settings, priors, rng)
 
     def _search_stages(self, traj: Trajectories, settings: EMSettings, priors: Priors,
                        rng: np.random.Generator) -> Skeleton:
         stages, selected, norm, info0 = fit_stages(traj, settings, priors, rng, labels=self.labels,
                                                    max_sticks=self.max_sticks, selection=self.selection,
-                                                   endpoint_init=self.endpoint_init, n_ends=settings.n_ends,
+                                                   endpoint_init=self.endpoint_init,
+                                                   n_ends=settings.n_ends + settings.hub_end,
                                                    progress=self.progress, max_frames=self.max_frames,
                                                    oversegment=self.oversegment, n_jobs=self.n_jobs)
         return _skeleton(stages, selected, norm, info0, self.selection, traj)

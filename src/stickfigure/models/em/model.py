@@ -35,7 +35,9 @@ The objective (eq. 4 of the paper) is written out term by term in
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
+from typing import Iterator
 
 import numpy as np
 from scipy import sparse
@@ -255,6 +257,28 @@ class Design:
         return H, b
 
 
+# The hub rule for the fit in progress (hub_endpoints).
+_hub_endpoints = False
+
+
+@contextmanager
+def hub_endpoints(on: bool) -> Iterator[None]:
+    """Inside the block (a whole fit), only the sticks with the most points may use their last endpoint.
+
+    A fit-wide switch, like :func:`.updates.mirror_alignment`: joints are made by a
+    dozen steps (merges, splits, bridges, sub-tree moves), all of which must see the
+    same rule. Forked workers (:mod:`.forked`) inherit it. See
+    :meth:`StickState.joint_capacity`.
+    """
+    global _hub_endpoints
+    old = _hub_endpoints
+    _hub_endpoints = bool(on)
+    try:
+        yield
+    finally:
+        _hub_endpoints = old
+
+
 @dataclass
 class StickState:
     """Every variable of the model (see the module docstring for the notation)."""
@@ -322,6 +346,19 @@ class StickState:
         and this is also the number of joints the stick is on.
         """
         return (self.vertex_counts() >= 2)[self.vertex_of].reshape(self.n_sticks, -1).sum(axis=1)
+
+    def joint_capacity(self) -> np.ndarray:
+        """How many joints each stick may be on, shape (S,): E, or under :func:`hub_endpoints`
+        E for the sticks with the most points and E - 1 for the others."""
+        cap = np.full(self.n_sticks, self.ends_per_stick)
+        if _hub_endpoints and self.n_sticks > 1:
+            size = np.bincount(self.labels, minlength=self.n_sticks)
+            cap[size < size.max()] -= 1
+        return cap
+
+    def open_sticks(self) -> np.ndarray:
+        """Which sticks may take another joint (fewer joints than :meth:`joint_capacity`), shape (S,)."""
+        return self.joints_per_stick() < self.joint_capacity()
 
     def only_one_point_sticks(self, vertices: int | np.ndarray | list[int]) -> bool:
         """Whether every endpoint on ``vertices`` (one index or several, taken as one joint) is of a

@@ -366,8 +366,9 @@ def _frames(st: StickState, frames: np.ndarray) -> StickState:
 
 
 def free_end_sticks(st: StickState) -> np.ndarray:
-    """Which sticks have an endpoint on no joint (where a split can hang its new piece), shape (S,)."""
-    return (st.vertex_counts()[st.vertex_of] == 1).reshape(st.n_sticks, st.ends_per_stick).any(axis=1)
+    """Which sticks have an endpoint on no joint (where a split can hang its new piece) and may
+    take another joint (:meth:`StickState.open_sticks`), shape (S,)."""
+    return st.open_sticks()
 
 
 def _pieces(st: StickState, s: int, second: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -114,6 +114,8 @@ class EMSettings:
     bridge_points: int = 2
     split_hubs: bool = True
     reattach: bool = True
+    spare_end: bool = False
+    hub_end: bool = False
     max_trees: int | None = None
     merge_rank: str = "residual"
     align_mirrors: bool = True
@@ -425,7 +427,7 @@ def merge_candidates(st: StickState, settings: EMSettings, seen: np.ndarray | No
     sides: list[tuple[str, int]] = []
     if settings.merge_init == "joint":
         sides += [("vertex", int(j)) for j in np.flatnonzero(~alone)]
-        sides += [("stick", int(x)) for x in np.flatnonzero(free.any(axis=1))]
+        sides += [("stick", int(x)) for x in np.flatnonzero(free.any(axis=1) & st.open_sticks())]
     else:
         sides += [("vertex", j) for j in range(J)]
 
@@ -1047,7 +1049,7 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
             break
         refinements.append(what)
         st = initial_state(obs, labels, int(labels.max()) + 1, priors, rng, endpoint_init=settings.endpoint_init,
-                           n_ends=settings.n_ends)
+                           n_ends=settings.n_ends + settings.hub_end)
         st, val, more = run_em(st, obs, priors, settings, settings.n_iter, rng)
         sweeps += more
     for _ in range(settings.articulated_rounds if settings.refine_sticks else 0):
@@ -1203,12 +1205,21 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
         # Sub-tree moves (tree.py): the greedy search never undoes a merge, and a contracted
         # stick links its two neighbours whatever they are; a part hanging from the wrong stick
         # is cut off and re-attached where the objective puts it.
-        from .tree import reattach_subtrees
+        from .tree import reattach_subtrees, with_spare_endpoint, without_spare_endpoints
 
         _, at, cur = best[selection]
-        cur, val, n, moves = reattach_subtrees(cur.copy(), obs, priors, settings, rng, stages[at].objective,
-                                               criterion)
-        keep_stage(cur, val, n, "reattached", moves)
+        cur, val, n = cur.copy(), stages[at].objective, 0
+        if settings.spare_end:
+            # One more endpoint per stick for the moves, so that a stick on as many joints as it
+            # has endpoints (a thorax with lumbar and shoulders) can still take a part hung
+            # elsewhere (the head on the pelvis). Settled first: the moves are judged against it.
+            cur, val, n = run_em(with_spare_endpoint(cur, priors), obs, priors, settings, settings.n_iter, rng)
+        cur, val, more, moves = reattach_subtrees(cur, obs, priors, settings, rng, val, criterion)
+        if moves and settings.spare_end:
+            fewer = without_spare_endpoints(cur)  # None: a stick is on a joint at every endpoint
+            if fewer is not None:
+                cur, val = fewer, objective(fewer, obs, priors)
+        keep_stage(cur, val, n + more, "reattached", moves)
     for crit in ("objective", "bic"):
         stages[best[crit][1]].state = best[crit][2]
     stages[best[selection][1]].search_bic = search_bic

@@ -37,7 +37,8 @@ import numpy as np
 from .model import Ghosts, Observations, Priors, StickState, chain_degree
 from .updates import update_endpoints
 
-__all__ = ["detach_endpoint", "cut_proposals", "reattach_subtrees", "join_trees"]
+__all__ = ["detach_endpoint", "cut_proposals", "reattach_subtrees", "join_trees", "with_spare_endpoint",
+           "without_spare_endpoints"]
 
 
 def detach_endpoint(st: StickState, e: int, priors: Priors) -> StickState:
@@ -66,6 +67,83 @@ def detach_endpoint(st: StickState, e: int, priors: Priors) -> StickState:
     out._design = None
     out._quat = None
     update_endpoints(out)
+    return out
+
+
+def with_spare_endpoint(st: StickState, priors: Priors) -> StickState:
+    """A copy of ``st`` with one more endpoint per stick (E -> E + 1), each on a vertex of its own.
+
+    The new endpoint starts at the centroid of its stick's points (in the stick's
+    frame); its vertex at the endpoint's prediction with the prior's shape and the
+    points' precision as its rate (as :func:`.initialise.initial_state` starts every
+    vertex). Endpoint ``i`` of stick ``s`` keeps its place ``i`` among the stick's
+    endpoints; the spare is the last.
+    """
+    S, E = st.n_sticks, st.ends_per_stick
+    J, F, D = st.mu_v.shape
+    out = st.copy()
+    old = (np.arange(S)[:, None] * (E + 1) + np.arange(E)[None, :]).ravel()
+    new = np.arange(S) * (E + 1) + E
+    n = S * (E + 1)
+    out.vertex_of = np.empty(n, np.int64)
+    out.vertex_of[old] = st.vertex_of
+    out.vertex_of[new] = J + np.arange(S)
+    size = np.bincount(st.labels, minlength=S).astype(float)
+    centroid = np.stack([np.bincount(st.labels, weights=st.local[:, k], minlength=S) for k in range(3)], axis=1)
+    centroid /= np.maximum(size, 1.0)[:, None]
+    out.ends = np.empty((n, 3))
+    out.ends[old] = st.ends
+    out.ends[new] = centroid
+    pred = np.einsum("sfdk,sk->sfd", st.rot, centroid) + st.trans  # (S, F, D)
+    out.mu_e = np.empty((n, F, D))
+    out.mu_e[old] = st.mu_e
+    out.mu_e[new] = pred
+    out.tau_e = np.empty(n)
+    out.tau_e[old] = st.tau_e
+    alpha = np.full(S, priors.alpha0 + 0.5 * D * F)
+    out.alpha = np.concatenate([st.alpha, alpha])
+    out.beta = np.concatenate([st.beta, alpha / st.tau_w])
+    out.mu_v = np.concatenate([st.mu_v, pred])
+    out.tau_v = np.concatenate([st.tau_v, st.tau_w + st.tau_t * chain_degree(F)[None, :].repeat(S, axis=0)])
+    if st.ghosts is not None:
+        g = st.ghosts
+        out.ghosts = Ghosts(np.append(g.n, np.zeros(S)), np.concatenate([g.sum, np.zeros((S, F, D))]),
+                            np.concatenate([g.sq, np.zeros((S, F))]), np.concatenate([g.var, np.zeros((S, F))]))
+    out._design = None
+    out._quat = None
+    update_endpoints(out, new)
+    return out
+
+
+def without_spare_endpoints(st: StickState) -> StickState | None:
+    """``st`` with one endpoint fewer per stick (E -> E - 1), or None when a stick is on E joints.
+
+    From every stick one endpoint on a vertex of its own (the last such) is removed
+    with its vertex, which holds no other endpoint: the undone
+    :func:`with_spare_endpoint`, wherever the moves left the stick's free endpoints.
+    """
+    S, E = st.n_sticks, st.ends_per_stick
+    cnt = st.vertex_counts()
+    alone = (cnt[st.vertex_of] == 1).reshape(S, E)
+    if E <= 2 or not alone.any(axis=1).all():
+        return None
+    drop = np.arange(S) * E + (E - 1 - np.argmax(alone[:, ::-1], axis=1))
+    keep_e = np.ones(S * E, bool)
+    keep_e[drop] = False
+    keep_v = np.ones(st.n_vertices, bool)
+    keep_v[st.vertex_of[drop]] = False
+    vmap = np.cumsum(keep_v) - 1
+    out = st.copy()
+    out.vertex_of = vmap[st.vertex_of[keep_e]]
+    for name in ("ends", "mu_e", "tau_e"):
+        setattr(out, name, getattr(st, name)[keep_e].copy())
+    for name in ("mu_v", "tau_v", "alpha", "beta"):
+        setattr(out, name, getattr(st, name)[keep_v].copy())
+    if st.ghosts is not None:
+        g = st.ghosts
+        out.ghosts = Ghosts(g.n[keep_v], g.sum[keep_v], g.sq[keep_v], g.var[keep_v])
+    out._design = None
+    out._quat = None
     return out
 
 
