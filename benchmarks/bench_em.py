@@ -6,6 +6,10 @@ em-structure-random3d
     Random 3D figures (``synthetic.random_figure``: 3-7 sticks, 90-180 frames,
     5-9 points per stick, 1% noise, random views), end to end: ARI,
     misclassification, edge F1, exact-structure rate (mean over figures).
+em-structure-star
+    Figures whose hub holds more joints than a stick has endpoints
+    (``synthetic.star``: 4-5 limbs), end to end: the default, ``hub_end`` and
+    ``spare_end`` with ``max_trees=1`` (ARI, edge F1, exact-structure rate).
 em-structure-low-noise
     The same random figures without noise and with 0.1 % noise (mean ARI, edge F1,
     and how many sticks more than parts each one got).
@@ -176,6 +180,32 @@ def case_structure_random3d(ctx: Context) -> Iterator[dict[str, Any]]:
     mean, extra = _random_structure(ctx, 0.01)
     yield {"dataset": "random_figure 3D", "method": "em", **mean,
            "notes": f"mean of {len(extra)} figures (3-7 sticks, 90-180 frames, 5-9 pts/stick, 1% noise)"}
+
+
+STAR_SETTINGS = {"default": {}, "hub_end": {"hub_end": True}, "spare_end, max_trees=1": {"spare_end": True,
+                                                                                        "max_trees": 1}}
+
+
+def case_structure_star(ctx: Context) -> Iterator[dict[str, Any]]:
+    # A hub on more joints than a stick has endpoints (synthetic.star: 4 or 5 limbs, the hub
+    # with the most points), which random_figure never makes: end to end, the default against
+    # the two ways em gives a stick a further endpoint.
+    figures = []
+    for k in range(12 if ctx.full else 4):
+        seed = ctx.seed * 1000 + k
+        rng = np.random.default_rng(40_000 + seed)
+        figures.append((seed, sf.synthetic.star(n_limbs=int(rng.integers(4, 6)), frames=int(rng.integers(90, 181)),
+                                                seed=seed, hub_points=int(rng.integers(8, 13)),
+                                                limb_points=int(rng.integers(4, 8)))))
+    for name, kw in STAR_SETTINGS.items():
+        rows = []
+        for seed, traj in figures:
+            skel, timing = ctx.time(lambda: sf.fit(traj, method="em", random_state=seed, **kw))
+            rows.append({**_score(skel, traj), **timing})
+        yield {"dataset": f"star 3D, {name}", "method": "em",
+               **_mean(rows, ("ari", "edge_f1", "exact", "time_s", "time_ratio")),
+               "notes": f"mean of {len(rows)} figures (a hub of 8-12 points with 4-5 limbs of 4-7, "
+                        "90-180 frames, 1% noise, random views)"}
 
 
 def case_structure_low_noise(ctx: Context) -> Iterator[dict[str, Any]]:
@@ -699,6 +729,7 @@ def case_memory(ctx: Context) -> Iterator[dict[str, Any]]:
 
 CASES = [
     Case("em-structure-random3d", case_structure_random3d),
+    Case("em-structure-star", case_structure_star),
     Case("em-structure-low-noise", case_structure_low_noise),
     Case("em-structure-virtual-markers", case_structure_virtual_markers, needs_data=True),
     Case("em-imputation-synthetic", case_imputation_synthetic),
