@@ -116,7 +116,8 @@ def with_spare_endpoint(st: StickState, priors: Priors) -> StickState:
 
 
 def without_spare_endpoints(st: StickState) -> StickState | None:
-    """``st`` with one endpoint fewer per stick (E -> E - 1), or None when a stick is on E joints.
+    """``st`` with one endpoint fewer per stick (E -> E - 1), or None when a stick is on E joints
+    (or E is 2: a stick keeps its two ends).
 
     From every stick one endpoint on a vertex of its own (the last such) is removed
     with its vertex, which holds no other endpoint: the undone
