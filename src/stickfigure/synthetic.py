@@ -118,6 +118,29 @@ def _scatter_points(rng: np.random.Generator, length: float, n: int, planar: boo
     return np.column_stack([along, radius * np.cos(ang), radius * np.sin(ang)])
 
 
+def _random_motion(rng: np.random.Generator, n_sticks: int, frames: int, amplitude: float, planar: bool
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """A random rest pose and smooth motion of a tree whose stick 0 is the root.
+
+    Returns ``rel_rot`` (S, F, 3, 3), each stick's rotation relative to its parent
+    (the root's in the world), and ``root_t`` (F, 3), the root's path: a drift plus
+    a wobble. In the image plane when ``planar``.
+    """
+    rest = rng.uniform(-np.pi, np.pi, size=(n_sticks, 1, 3))
+    if planar:
+        rest[..., :2] = 0.0
+    motion = _smooth_rotvecs(rng, n_sticks, frames, amplitude, planar)
+    motion[0] *= 0.5  # the root turns less than the limbs
+    rel = Rotation.from_rotvec((rest + motion).reshape(-1, 3)).as_matrix().reshape(n_sticks, frames, 3, 3)
+    t = np.linspace(0, 1, frames)[:, None]
+    drift = rng.normal(size=(1, 3)) * 0.5
+    wobble = 0.3 * np.sin(2 * np.pi * rng.uniform(0.3, 1.0, size=(1, 3)) * t + rng.uniform(0, 6.3, size=(1, 3)))
+    root_t = drift * t + wobble
+    if planar:
+        root_t[:, 2] = 0.0
+    return rel, root_t
+
+
 def _finish(points: np.ndarray, joints: np.ndarray, spec: FigureSpec, rng: np.random.Generator,
             noise: float, view: Any, planar: bool, meta: dict[str, Any], frame_rate: float | None,
             part_names: list[str] | None = None) -> Trajectories:
@@ -227,19 +250,7 @@ def random_figure(
     spec = FigureSpec(parent=parent, attach=attach, lengths=lengths, local=local, labels=labels)
 
     # Rest orientation of each stick relative to its parent, then smooth motion about it.
-    rest = rng.uniform(-np.pi, np.pi, size=(n_sticks, 1, 3))
-    if planar:
-        rest[..., :2] = 0.0
-    motion = _smooth_rotvecs(rng, n_sticks, frames, amplitude, planar)
-    motion[0] *= 0.5  # the root turns less than the limbs
-    rel = Rotation.from_rotvec((rest + motion).reshape(-1, 3)).as_matrix().reshape(n_sticks, frames, 3, 3)
-    t = np.linspace(0, 1, frames)[:, None]
-    drift = rng.normal(size=(1, 3)) * 0.5
-    wobble = 0.3 * np.sin(2 * np.pi * rng.uniform(0.3, 1.0, size=(1, 3)) * t + rng.uniform(0, 6.3, size=(1, 3)))
-    root_t = drift * t + wobble
-    if planar:
-        root_t[:, 2] = 0.0
-    pts, joints = _forward_kinematics(spec, rel, root_t)
+    pts, joints = _forward_kinematics(spec, *_random_motion(rng, n_sticks, frames, amplitude, planar))
     meta = {"generator": "random_figure", "n_sticks": n_sticks, "planar": planar}
     return _finish(pts, joints, spec, rng, noise, view, planar, meta, frame_rate=30.0)
 
@@ -309,14 +320,7 @@ def star(
     labels = np.repeat(np.arange(S), counts)
     local = np.concatenate([_scatter_points(rng, lengths[s], int(counts[s]), False, 0.25) for s in range(S)])
     spec = FigureSpec(parent=parent, attach=attach, lengths=lengths, local=local, labels=labels)
-    rest = rng.uniform(-np.pi, np.pi, size=(S, 1, 3))
-    motion = _smooth_rotvecs(rng, S, frames, amplitude, False)
-    motion[0] *= 0.5  # the hub turns less than the limbs
-    rel = Rotation.from_rotvec((rest + motion).reshape(-1, 3)).as_matrix().reshape(S, frames, 3, 3)
-    t = np.linspace(0, 1, frames)[:, None]
-    root_t = rng.normal(size=(1, 3)) * 0.5 * t + 0.3 * np.sin(
-        2 * np.pi * rng.uniform(0.3, 1.0, size=(1, 3)) * t + rng.uniform(0, 6.3, size=(1, 3)))
-    pts, joints = _forward_kinematics(spec, rel, root_t)
+    pts, joints = _forward_kinematics(spec, *_random_motion(rng, S, frames, amplitude, False))
     meta = {"generator": "star", "n_sticks": S, "planar": False}
     return _finish(pts, joints, spec, rng, noise, view, False, meta, frame_rate=30.0,
                    part_names=["hub"] + [f"limb{k + 1}" for k in range(n_limbs)])
