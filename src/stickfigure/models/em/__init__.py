@@ -540,7 +540,7 @@ class EMSkeleton(StickEstimator):
         stages, selected, norm, info0 = fit_stages(traj, settings, priors, rng, labels=self.labels,
                                                    max_sticks=self.max_sticks, selection=self.selection,
                                                    endpoint_init=self.endpoint_init,
-                                                   n_ends=settings.n_ends + settings.hub_end,
+                                                   n_ends=settings.state_ends,
                                                    progress=self.progress, max_frames=self.max_frames,
                                                    oversegment=self.oversegment, n_jobs=self.n_jobs)
         return _skeleton(stages, selected, norm, info0, self.selection, traj)

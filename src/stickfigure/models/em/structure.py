@@ -122,6 +122,11 @@ class EMSettings:
     # Processes the search may use (forked.py); the result does not depend on it.
     n_jobs: int = 1
 
+    @property
+    def state_ends(self) -> int:
+        """Endpoints a stick has in the state: ``n_ends``, one more with ``hub_end``."""
+        return self.n_ends + int(self.hub_end)
+
 
 def child_rng(rng: np.random.Generator) -> np.random.Generator:
     """An independent generator drawn from ``rng`` without advancing its stream (``spawn``);
@@ -427,7 +432,7 @@ def merge_candidates(st: StickState, settings: EMSettings, seen: np.ndarray | No
     sides: list[tuple[str, int]] = []
     if settings.merge_init == "joint":
         sides += [("vertex", int(j)) for j in np.flatnonzero(~alone)]
-        sides += [("stick", int(x)) for x in np.flatnonzero(free.any(axis=1) & st.open_sticks())]
+        sides += [("stick", int(x)) for x in np.flatnonzero(st.open_sticks())]  # each has a free endpoint
     else:
         sides += [("vertex", j) for j in range(J)]
 
@@ -503,8 +508,7 @@ def merge_vertices(st: StickState, cand: Candidate, priors: Priors, init: str) -
     out.mu_v, out.tau_v = st.mu_v[keep].copy(), st.tau_v[keep].copy()
     out.alpha, out.beta = st.alpha[keep].copy(), st.beta[keep].copy()
     if st.ghosts is not None:
-        g = st.ghosts
-        out.ghosts = Ghosts(g.n[keep], g.sum[keep], g.sq[keep], g.var[keep])
+        out.ghosts = st.ghosts.take(keep)
     a1, a2 = st.alpha[j1] / st.beta[j1], st.alpha[j2] / st.beta[j2]
     if init == "joint" and cand.k is not None:
         order = {int(e): r for r, e in enumerate(cand.ends)}
@@ -1049,7 +1053,7 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
             break
         refinements.append(what)
         st = initial_state(obs, labels, int(labels.max()) + 1, priors, rng, endpoint_init=settings.endpoint_init,
-                           n_ends=settings.n_ends + settings.hub_end)
+                           n_ends=settings.state_ends)
         st, val, more = run_em(st, obs, priors, settings, settings.n_iter, rng)
         sweeps += more
     for _ in range(settings.articulated_rounds if settings.refine_sticks else 0):
