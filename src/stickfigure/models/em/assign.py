@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .model import Ghosts, Observations, Priors, StickState
+from .model import Observations, Priors, StickState
 
 __all__ = ["candidate_fits", "resample_assignments", "remove_sticks", "stick_is_free"]
 
@@ -78,8 +78,7 @@ def remove_sticks(st: StickState, drop: np.ndarray) -> StickState:
     out.mu_v, out.tau_v = st.mu_v[vkeep], st.tau_v[vkeep]
     out.alpha, out.beta = st.alpha[vkeep], st.beta[vkeep]
     if st.ghosts is not None:
-        g = st.ghosts
-        out.ghosts = Ghosts(g.n[vkeep], g.sum[vkeep], g.sq[vkeep], g.var[vkeep])
+        out.ghosts = st.ghosts.take(vkeep)
     return out
 
 

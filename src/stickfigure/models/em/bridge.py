@@ -187,10 +187,7 @@ def _with_new_stick(cut: StickState, priors: Priors, point: int, like: int, ends
     out.alpha = np.concatenate([cut.alpha, np.ones(n_free)])
     out.beta = np.concatenate([cut.beta, np.ones(n_free)])
     if cut.ghosts is not None:
-        g = cut.ghosts
-        z = Ghosts.empty(n_free, F, D)
-        out.ghosts = Ghosts(np.concatenate([g.n, z.n]), np.concatenate([g.sum, z.sum]),
-                            np.concatenate([g.sq, z.sq]), np.concatenate([g.var, z.var]))
+        out.ghosts = cut.ghosts.grown(n_free)
     out._design = None
     out._quat = None
     pred = out.end_predictions()

@@ -176,6 +176,17 @@ class Ghosts:
     def empty(J: int, F: int, D: int) -> "Ghosts":
         return Ghosts(np.zeros(J), np.zeros((J, F, D)), np.zeros((J, F)), np.zeros((J, F)))
 
+    def take(self, vertices: np.ndarray) -> "Ghosts":
+        """The ghosts of ``vertices`` (indices or a mask over the vertices), in that order."""
+        return Ghosts(self.n[vertices], self.sum[vertices], self.sq[vertices], self.var[vertices])
+
+    def grown(self, k: int) -> "Ghosts":
+        """These ghosts and ``k`` new vertices without any."""
+        _, F, D = self.sum.shape
+        z = Ghosts.empty(k, F, D)
+        return Ghosts(np.concatenate([self.n, z.n]), np.concatenate([self.sum, z.sum]),
+                      np.concatenate([self.sq, z.sq]), np.concatenate([self.var, z.var]))
+
 
 @dataclass
 class Design:

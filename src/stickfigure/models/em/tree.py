@@ -34,7 +34,7 @@ from typing import Callable
 
 import numpy as np
 
-from .model import Ghosts, Observations, Priors, StickState, chain_degree
+from .model import Observations, Priors, StickState, chain_degree
 from .updates import update_endpoints
 
 __all__ = ["detach_endpoint", "cut_proposals", "reattach_subtrees", "join_trees", "with_spare_endpoint",
@@ -61,9 +61,7 @@ def detach_endpoint(st: StickState, e: int, priors: Priors) -> StickState:
     out.mu_v = np.concatenate([out.mu_v, st.mu_e[e][None]])
     out.tau_v = np.concatenate([out.tau_v, (a + st.tau_t * chain_degree(F))[None]])
     if st.ghosts is not None:
-        g = st.ghosts
-        out.ghosts = Ghosts(np.append(g.n, 0.0), np.concatenate([g.sum, np.zeros((1, F, D))]),
-                            np.concatenate([g.sq, np.zeros((1, F))]), np.concatenate([g.var, np.zeros((1, F))]))
+        out.ghosts = st.ghosts.grown(1)
     out._design = None
     out._quat = None
     update_endpoints(out)
@@ -106,9 +104,7 @@ def with_spare_endpoint(st: StickState, priors: Priors) -> StickState:
     out.mu_v = np.concatenate([st.mu_v, pred])
     out.tau_v = np.concatenate([st.tau_v, st.tau_w + st.tau_t * chain_degree(F)[None, :].repeat(S, axis=0)])
     if st.ghosts is not None:
-        g = st.ghosts
-        out.ghosts = Ghosts(np.append(g.n, np.zeros(S)), np.concatenate([g.sum, np.zeros((S, F, D))]),
-                            np.concatenate([g.sq, np.zeros((S, F))]), np.concatenate([g.var, np.zeros((S, F))]))
+        out.ghosts = st.ghosts.grown(S)
     out._design = None
     out._quat = None
     update_endpoints(out, new)
@@ -141,8 +137,7 @@ def without_spare_endpoints(st: StickState) -> StickState | None:
     for name in ("mu_v", "tau_v", "alpha", "beta"):
         setattr(out, name, getattr(st, name)[keep_v].copy())
     if st.ghosts is not None:
-        g = st.ghosts
-        out.ghosts = Ghosts(g.n[keep_v], g.sum[keep_v], g.sq[keep_v], g.var[keep_v])
+        out.ghosts = st.ghosts.take(keep_v)
     out._design = None
     out._quat = None
     return out
