@@ -254,7 +254,8 @@ def test_two_one_point_sticks_are_linked_only_where_nothing_else_spans(monkeypat
     monkeypatch.setattr(structure, "joint_least_squares",
                         lambda st, sticks, k0: (None, residual[tuple(sorted(sticks))]))
     st = SimpleNamespace(labels=np.array([0, 0, 0, 0, 1, 2]), n_sticks=3, n_vertices=4, ends_per_stick=2,
-                         vertex_of=np.array([0, 1, 0, 2, 0, 3]), ends=np.zeros((6, 3)))
+                         vertex_of=np.array([0, 1, 0, 2, 0, 3]), ends=np.zeros((6, 3)),
+                         stick_sizes=lambda: np.bincount(st.labels, minlength=st.n_sticks))
     assert stick_edges(st) == ([(0, 1), (0, 2)], [0, 0])
     # Two 2-point sticks may be a chain at that vertex: the residuals decide, as with three
     # 1-point sticks.

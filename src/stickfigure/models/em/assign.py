@@ -105,7 +105,7 @@ def resample_assignments(st: StickState, obs: Observations, priors: Priors, rng:
     S = st.n_sticks
     P = obs.n_points
     loc, sq = candidate_fits(st, obs, priors)
-    counts = np.bincount(st.labels, minlength=S).astype(float)
+    counts = st.stick_sizes().astype(float)
     logc = np.log(np.maximum(counts, 1.0) / P)
     logp = logc[None, :] - 0.5 * st.tau_w * sq  # (P, S)
     if mode == "sample":

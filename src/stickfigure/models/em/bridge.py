@@ -390,7 +390,7 @@ def unpair_hubs(st: StickState, obs: Observations, priors: Priors, settings, rng
     def propose(tried: set) -> tuple[int, tuple[int, ...]] | None:
         now = cur["st"]
         hubs = now.joints_per_stick() >= UNPAIR_MIN_JOINTS
-        sizes = np.bincount(now.labels, minlength=now.n_sticks)
+        sizes = now.stick_sizes()
         for c in np.flatnonzero((sizes == 2) & hubs):
             pts = tuple(np.flatnonzero(now.labels == c).tolist())
             if pts not in tried:  # a pair is named by its points, so that one that lost is not retried

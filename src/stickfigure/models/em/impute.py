@@ -160,7 +160,7 @@ def refit_motions(st: StickState, obs: Observations, priors: Priors, settings: A
         # released: its neighbours' rotations, its joints and its path place it. One of 1-2
         # points turns freely about its line but for that prior, which training's mirror flips
         # can make weak, and stays held (docs/em.md section 8).
-        hold &= (np.bincount(st.labels, minlength=st.n_sticks) < 3)[:, None]
+        hold &= (st.stick_sizes() < 3)[:, None]
     every = max(int(settings.resample_every), 1) if settings.resample_every else 10
     for it in range(n_iter):
         em_sweep(st, obs, priors, precisions=False, local=False, n_procrustes=settings.n_procrustes,

@@ -346,6 +346,10 @@ class StickState:
             self._design = Design.of(self.labels, self.n_sticks, obs)
         return self._design
 
+    def stick_sizes(self) -> np.ndarray:
+        """Number of points on each stick, shape (S,), int."""
+        return np.bincount(self.labels, minlength=self.n_sticks)
+
     def vertex_counts(self) -> np.ndarray:
         """Number of (own) endpoints on each vertex, shape (J,)."""
         return np.bincount(self.vertex_of, minlength=self.n_vertices).astype(float)
@@ -363,7 +367,7 @@ class StickState:
         E for the sticks with the most points and E - 1 for the others."""
         cap = np.full(self.n_sticks, self.ends_per_stick)
         if _hub_endpoints and self.n_sticks > 1:
-            size = np.bincount(self.labels, minlength=self.n_sticks)
+            size = self.stick_sizes()
             cap[size < size.max()] -= 1
         return cap
 
@@ -380,7 +384,7 @@ class StickState:
         nothing, while a criterion still credits it as a joint (one vertex fewer).
         """
         on = np.flatnonzero(np.isin(self.vertex_of, np.atleast_1d(vertices))) // self.ends_per_stick
-        return bool(on.size) and bool(np.all(np.bincount(self.labels, minlength=self.n_sticks)[on] == 1))
+        return bool(on.size) and bool(np.all(self.stick_sizes()[on] == 1))
 
     def copy(self) -> "StickState":
         arrays = {k: getattr(self, k).copy() for k in ("labels", "vertex_of", "rot", "trans", "local", "ends",

@@ -62,7 +62,7 @@ def motion_parameters(st: StickState, obs: Observations) -> np.ndarray:
     data ``F (3 + D)``.
     """
     n = st.design(obs).n  # (S, F)
-    size = np.bincount(st.labels, minlength=st.n_sticks)
+    size = st.stick_sizes()
     rot = n >= np.minimum(MIN_ROTATION_POINTS, size)[:, None]
     return np.sum(obs.n_dims * (n >= 1) + 3 * (rot & (n >= 1)), axis=1).astype(float)
 
@@ -72,7 +72,7 @@ def fit_dof(st: StickState, obs: Observations) -> np.ndarray:
     :func:`motion_parameters` and 3 local coordinates per point (a rigid stick's expected RSS is
     ``sigma^2`` times this)."""
     return (obs.n_dims * st.design(obs).n.sum(axis=1) - motion_parameters(st, obs)
-            - 3 * np.bincount(st.labels, minlength=st.n_sticks))
+            - 3 * st.stick_sizes())
 
 
 def noise_variance(st: StickState, obs: Observations, priors: Priors) -> tuple[np.ndarray, float]:
@@ -547,7 +547,7 @@ def dissolve_stick(st: StickState, obs: Observations, priors: Priors, s: int) ->
     S, E = st.n_sticks, st.ends_per_stick
     D, F = st.n_dims, st.n_frames
     loc, sq = candidate_fits(st, obs, priors)
-    counts = np.bincount(st.labels, minlength=S).astype(float)
+    counts = st.stick_sizes().astype(float)
     logp = np.log(np.maximum(counts, 1.0) / obs.n_points)[None, :] - 0.5 * st.tau_w * sq
     logp[:, s] = -np.inf
     pts = np.flatnonzero(st.labels == s)
@@ -634,7 +634,7 @@ def _next_small_stick(st: StickState, order: np.ndarray, max_points: int, tried:
     ``scope="leaves"`` only sticks with at most one joint count."""
     if scope not in ("all", "leaves"):
         raise ValueError(f"scope must be 'all' or 'leaves', got {scope!r}")
-    sizes = np.bincount(st.labels, minlength=st.n_sticks)
+    sizes = st.stick_sizes()
     if scope == "leaves":
         order = np.asarray(order)
         order = order[st.joints_per_stick()[order] <= 1]
@@ -697,8 +697,7 @@ def dissolve_small_sticks(st: StickState, obs: Observations, priors: Priors, set
     def propose(tried: set) -> tuple[int, tuple[int, ...]] | None:
         now = cur["st"]
         while now.n_sticks > 1:
-            nxt = _next_small_stick(now, np.argsort(np.bincount(now.labels, minlength=now.n_sticks), kind="stable"),
-                                    max_points, tried, scope)
+            nxt = _next_small_stick(now, np.argsort(now.stick_sizes(), kind="stable"), max_points, tried, scope)
             # Cheap test first: the points' fit on their best other sticks (motions fixed, local
             # coordinates refitted) may lose at most LOOSE_FACTOR times the parameters saved
             # (a real segment's points fit the other sticks far worse).
@@ -784,7 +783,7 @@ def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings
     from .trials import greedy_trials
 
     n_masks = check_positive(n_masks, "n_masks", integer=True)
-    if not np.any(np.bincount(st.labels, minlength=st.n_sticks) <= max_points):  # nothing to try
+    if not np.any(st.stick_sizes() <= max_points):  # nothing to try
         return st, value, 0, [], {"fraction": float(fraction), "error_before": None, "error_after": None}
     # Hidden as occlusions are (synthetic.occlude: a sweeping bar, then random drop-outs, half
     # the fraction each): with entries hidden one at a time, a stick's rotation is interpolated
@@ -815,8 +814,7 @@ def heldout_dissolve(st: StickState, obs: Observations, priors: Priors, settings
             np.bincount(now.labels, weights=n_hid, minlength=now.n_sticks), 1)
         order = np.argsort(-worst, kind="stable")
         if free_points is not None and free_points < max_points:
-            fits = (np.bincount(now.labels, minlength=now.n_sticks) <= free_points) | (
-                misfit_ratios(now, obs, priors) > suspect_ratio)
+            fits = (now.stick_sizes() <= free_points) | (misfit_ratios(now, obs, priors) > suspect_ratio)
             order = order[fits[order]]
         return _next_small_stick(now, order, max_points, tried, scope)
 
@@ -881,7 +879,7 @@ def articulated_split_round(st: StickState, obs: Observations, priors: Priors, s
     """
     from .structure import run_em
 
-    sizes = np.bincount(st.labels, minlength=st.n_sticks)
+    sizes = st.stick_sizes()
     skip = set(np.flatnonzero((sizes < min_points) | ~free_end_sticks(st)).tolist())
     splits = articulated_split_candidates(st, obs, priors, n_axes=settings.split_axes, skip=skip,
                                           n_jobs=settings.n_jobs)
@@ -921,7 +919,7 @@ def split_hubs(st: StickState, obs: Observations, priors: Priors, settings, rng:
     from .structure import out_of_reach, run_em
 
     m = int(settings.min_stick_points)
-    sizes = np.bincount(st.labels, minlength=st.n_sticks)
+    sizes = st.stick_sizes()
     skip = set(np.flatnonzero((sizes < 2 * m) | free_end_sticks(st)).tolist())
     if len(skip) == st.n_sticks:
         return st, value, 0, []

@@ -267,7 +267,7 @@ def stick_edges(st: StickState, obs: Observations | None = None) -> tuple[list[t
     edges: list[tuple[int, int]] = []
     verts: list[int] = []
     E = st.ends_per_stick
-    sizes = np.bincount(st.labels, minlength=st.n_sticks)
+    sizes = st.stick_sizes()
     for j in range(st.n_vertices):
         own = np.flatnonzero(st.vertex_of == j)
         k_of = {int(i // E): st.ends[i] for i in own}
@@ -445,7 +445,7 @@ def merge_candidates(st: StickState, settings: EMSettings, seen: np.ndarray | No
         return ("vertex",) + tuple(np.flatnonzero(st.vertex_of == side[1]).tolist())
 
     stats = pair_stats(st)
-    size = np.bincount(st.labels, minlength=st.n_sticks)
+    size = st.stick_sizes()
     joints = st.joints_per_stick()
     out: list[Candidate] = []
     for ia, a in enumerate(sides):
@@ -930,7 +930,7 @@ def rigid_joints(st: StickState, obs: Observations) -> np.ndarray:
     F, D = st.n_frames, st.n_dims
     logN = float(np.log(obs.mask.sum() * obs.n_dims))
     seen = st.design(obs).n
-    size = np.bincount(st.labels, minlength=st.n_sticks).astype(float)
+    size = st.stick_sizes().astype(float)
     for j in shared:
         ends = np.flatnonzero(st.vertex_of == j)
         sticks = ends // E

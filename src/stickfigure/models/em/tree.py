@@ -35,7 +35,7 @@ from typing import Callable
 import numpy as np
 
 from .model import Observations, Priors, StickState, chain_degree
-from .updates import update_endpoints
+from .updates import stick_centroids, update_endpoints
 
 __all__ = ["detach_endpoint", "cut_proposals", "reattach_subtrees", "join_trees", "with_spare_endpoint",
            "without_spare_endpoints"]
@@ -86,9 +86,7 @@ def with_spare_endpoint(st: StickState, priors: Priors) -> StickState:
     out.vertex_of = np.empty(n, np.int64)
     out.vertex_of[old] = st.vertex_of
     out.vertex_of[new] = J + np.arange(S)
-    size = np.bincount(st.labels, minlength=S).astype(float)
-    centroid = np.stack([np.bincount(st.labels, weights=st.local[:, k], minlength=S) for k in range(3)], axis=1)
-    centroid /= np.maximum(size, 1.0)[:, None]
+    centroid = stick_centroids(st)
     out.ends = np.empty((n, 3))
     out.ends[old] = st.ends
     out.ends[new] = centroid
@@ -164,7 +162,7 @@ def cut_proposals(st: StickState, obs: Observations, ratio: float) -> list[tuple
     # Centroid of each stick's points in its own frame: the ridge's anchor for a joint that
     # is not there yet (the residual is a minimum over the joint's place, the anchor only
     # fixes the directions the motion leaves open).
-    size = np.bincount(st.labels, minlength=st.n_sticks)
+    size = st.stick_sizes()
     cen = st.design(obs).stick_sum(st.local) / np.maximum(size, 1)[:, None]
     pair: dict[tuple[int, int], float] = {}
 

@@ -208,8 +208,8 @@ def _neighbour_sum(x: np.ndarray) -> np.ndarray:
 
 def stick_centroids(st: StickState) -> np.ndarray:
     """(S, 3) mean local coordinates of each stick's points (the centroid the prior follows)."""
-    S = st.trans.shape[0]
-    cnt = np.maximum(np.bincount(st.labels, minlength=S), 1).astype(float)
+    S = st.n_sticks
+    cnt = np.maximum(st.stick_sizes(), 1).astype(float)
     return np.stack([np.bincount(st.labels, weights=st.local[:, j], minlength=S) for j in range(3)], axis=1) \
         / cnt[:, None]
 
@@ -471,7 +471,7 @@ def underdetermined_frames(st: StickState, obs: Observations) -> np.ndarray | No
     interpolation). None when no frame is marked (complete data).
     """
     des = st.design(obs)
-    size = np.bincount(st.labels, minlength=st.n_sticks)
+    size = st.stick_sizes()
     few = des.n < MIN_ROTATION_POINTS
     ok = (size >= MIN_ROTATION_POINTS) & (~few).any(axis=1)
     out = few & ok[:, None]
@@ -553,7 +553,7 @@ def align_mirrors(st: StickState, R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndar
     changed : ndarray of bool, shape (S, F), or None when nothing changed
     """
     axes, flat = _principal_axes(st)
-    counts = np.bincount(st.labels, minlength=st.n_sticks)
+    counts = st.stick_sizes()
     idx = np.flatnonzero(flat & (counts >= 3))  # 1 or 2 points: no plane to mirror in
     F = R.shape[1]
     if idx.size == 0 or F < 2:
