@@ -86,6 +86,11 @@ def test_insert_bridge_makes_a_one_point_stick_in_two_joints(star):
     others = np.arange(obs.n_points) != p
     np.testing.assert_array_equal(new.labels[others], wrong.labels[others])
     assert new.joints_per_stick()[S] == 2 and S in record["linked"]
+    # It goes into the joint e left: one of its joints holds an endpoint that was on j, not a
+    # free endpoint of a stick that was on j (which would make a new joint elsewhere).
+    into = [x for x in np.flatnonzero(wrong.vertex_of == j) if x != e]
+    own = set(new.vertex_of[E * S:E * (S + 1)].tolist())
+    assert any(int(new.vertex_of[x]) in own for x in into)
     assert components(new)[0].max() == components(wrong)[0].max()  # still one tree
     assert sweeps > 0 and np.isfinite(val) and val == pytest.approx(objective(new, obs, priors))
     # Its free endpoint may not become a third joint: a 1-point stick would be a free hub.
@@ -332,3 +337,49 @@ def test_a_dissolved_link_hangs_its_part_where_its_near_point_went(seed):
     assert out.labels[near] == 0 and np.all(out.labels[T == 2] == 2)
     assert sorted(map(sorted, stick_edges(out)[0])) == [[0, 1], [0, 2]]
     assert components(out)[0].max() == 0
+
+
+
+def test_insert_bridge_scores_only_links_into_the_joint_it_left(star, monkeypatch):
+    # The new stick may link to the endpoints still on e's joint, not to another (free) endpoint
+    # of a stick on it: that makes a new joint elsewhere (on CMU 85_02 the right upper arm's
+    # marker, bridged at the forearm's joint, was hung on the head's free end). Such a link is
+    # offered here beside the search's own candidates, ranked first; it must not be scored.
+    import stickfigure.models.em.structure as structure
+    from stickfigure.models.em.structure import Candidate
+
+    traj, st, wrong, value, p, obs, settings, priors = star
+    E = wrong.ends_per_stick
+    candidates, score = structure.merge_candidates, structure.score_candidates
+    scored: list[np.ndarray] = []
+    into: list[int] = []
+
+    def offering(st_, settings_, seen=None):
+        out = candidates(st_, settings_, seen)
+        free = st_.vertex_counts()[st_.vertex_of] == 1
+        S = st_.n_sticks - 1  # the new stick
+        z = next(x for x in range(E * S, E * (S + 1)) if free[x])
+        partners = {x // E for x in into}
+        for y in np.flatnonzero(free[:E * S]):
+            if y // E in partners and y not in into:
+                v = sorted((int(st_.vertex_of[z]), int(st_.vertex_of[y])))
+                out.append(Candidate(v[0], v[1], -1.0, np.array([z, y]), st_.ends[[z, y]].copy()))
+        return out
+
+    def recording(st_, obs_, priors_, settings_, cands, rng):
+        scored.extend(np.asarray(c.ends) for c in cands)
+        return score(st_, obs_, priors_, settings_, cands, rng)
+
+    monkeypatch.setattr(structure, "merge_candidates", offering)
+    monkeypatch.setattr(structure, "score_candidates", recording)
+    tried = 0
+    for j in np.flatnonzero(wrong.vertex_counts() >= 2):
+        for e in np.flatnonzero(wrong.vertex_of == j):
+            if np.count_nonzero(wrong.labels == e // E) < 2:
+                continue
+            scored.clear()
+            into[:] = [int(x) for x in np.flatnonzero(wrong.vertex_of == j) if x != e]
+            insert_bridge(wrong, obs, priors, settings, p, int(e), np.random.default_rng(2))
+            assert scored and all(np.isin(ends, into).any() for ends in scored)
+            tried += 1
+    assert tried > 0

@@ -35,13 +35,16 @@ stick to join. :func:`bridge_points` makes the move directly:
    between ``b`` and the sticks still on it. ``e`` is detached from the joint
    (:func:`.tree.detach_endpoint`), a new stick holding ``p`` starts at ``b``'s motion
    with one endpoint on ``e``'s new vertex and its other endpoints free, and the merges
-   of a free endpoint of the new stick with the joint's other sticks are scored as in
-   the search (:func:`.structure.score_candidates`); the best is performed and EM
+   of a free endpoint of the new stick with the endpoints still on that joint are scored
+   as in the search (:func:`.structure.score_candidates`); the best is performed and EM
    re-run. The number of sticks grows by one and of trees stays the same. Linking the
    new stick anywhere in the part ``b`` was cut from (the first version) put it where
    a loose joint fitted worst: on CMU 85_02 from 128.4/24.6 degrees RUPA, bridged at the
    right forearm's joint, was linked to the hip stick RFWT+RTHI (a body tree lost; with
-   the link into the joint, a body tree).
+   the link into the joint, a body tree). Linking it to a free endpoint of a stick on
+   that joint (the second version) made a new joint elsewhere: on CMU 85_02 from 131/6
+   degrees RUPA, bridged at the right forearm's joint, was hung on a free end of the
+   head, a stick on that joint (a body tree lost; into the joint, a body tree).
 3. The best trial is kept when the selection criterion (BIC or the objective)
    improves; then the screen runs again on the new model, up to ``max_points``
    kept bridges. A candidate whose trials all lose is not proposed again.
@@ -234,14 +237,16 @@ def insert_bridge(st: StickState, obs: Observations, priors: Priors, settings, p
     far = [lp + (lp - k0) / (i + 1) for i in range(min(E - 1, 2))]
     far += [lp + np.array([0.0, 0.0, 0.1 * i]) for i in range(1, E - 2)]
     out = _with_new_stick(cut, priors, p, b, [k0] + far, [ve], local=lp)
-    # The new stick goes into the joint b left: merges of a free endpoint of it with the sticks
-    # still on that joint (a 1-point stick's two joints constrain each other little, so a link
-    # scored anywhere in the tree would go wherever a loose joint fits worst).
-    partners = {int(x // E) for x in np.flatnonzero(st.vertex_of == st.vertex_of[e]) if x != e}
+    # The new stick goes into the joint b left: merges of a free endpoint of it with the
+    # endpoints still on that joint (a 1-point stick's two joints constrain each other little,
+    # so a link scored anywhere in the tree would go wherever a loose joint fits worst; and a
+    # link to another endpoint of a stick on that joint makes a new joint, docs/em.md section 11).
+    into = [int(x) for x in np.flatnonzero(st.vertex_of == st.vertex_of[e]) if x != e]
+    partners = {x // E for x in into}
     cands = []
     for c in merge_candidates(out, replace(settings, max_candidates=None), out.design(obs).n):
         sticks = {int(x) for x in np.unique(c.ends // E)}
-        if S in sticks and sticks - {S} and sticks - {S} <= partners:
+        if S in sticks and sticks - {S} and sticks - {S} <= partners and np.isin(c.ends, into).any():
             cands.append(c)
     if not cands:
         return None
