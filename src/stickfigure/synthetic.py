@@ -170,6 +170,14 @@ def _finish(points: np.ndarray, joints: np.ndarray, spec: FigureSpec, rng: np.ra
     )
 
 
+def _check_frames(value: Any, name: str = "frames") -> int:
+    """A generator's frame count: an integer of at least 2 (one frame shows no motion)."""
+    n = check_positive(value, name, integer=True)
+    if n < 2:
+        raise ValueError(f"{name} must be >= 2, got {n}")
+    return n
+
+
 def random_figure(
     n_sticks: int = 5,
     frames: int = 120,
@@ -218,9 +226,7 @@ def random_figure(
         2D trajectories with ``labels_true``, ``edges_true`` and ``joints_true``.
     """
     n_sticks = check_positive(n_sticks, "n_sticks", integer=True)
-    frames = check_positive(frames, "frames", integer=True)
-    if frames < 2:
-        raise ValueError(f"frames must be >= 2, got {frames}")
+    frames = _check_frames(frames)
     check_positive(noise, "noise", allow_zero=True)
     rng = check_random_state(seed)
     lo, hi = (points_per_stick, points_per_stick) if np.isscalar(points_per_stick) else points_per_stick
@@ -299,11 +305,9 @@ def star(
         2D trajectories with ``labels_true``, ``edges_true`` and ``joints_true``.
     """
     n_limbs = check_positive(n_limbs, "n_limbs", integer=True)
-    frames = check_positive(frames, "frames", integer=True)
+    frames = _check_frames(frames)
     hub_points = check_positive(hub_points, "hub_points", integer=True)
     limb_points = check_positive(limb_points, "limb_points", integer=True)
-    if frames < 2:
-        raise ValueError(f"frames must be >= 2, got {frames}")
     check_positive(noise, "noise", allow_zero=True)
     rng = check_random_state(seed)
     S = n_limbs + 1
@@ -364,9 +368,7 @@ def arm(
     n_points = check_positive(n_points, "n_points", integer=True)
     if n_points < n_joints:
         raise ValueError(f"n_points ({n_points}) must be at least n_joints ({n_joints})")
-    n_frames = check_positive(n_frames, "n_frames", integer=True)
-    if n_frames < 2:
-        raise ValueError(f"n_frames must be >= 2, got {n_frames}")
+    n_frames = _check_frames(n_frames, "n_frames")
     check_positive(noise, "noise", allow_zero=True)
     rng = check_random_state(seed)
     S = n_joints
@@ -554,9 +556,7 @@ def rigid_bodies(
         empty (no joints) and ``meta["noise_std"]``.
     """
     n_bodies = check_positive(n_bodies, "n_bodies", integer=True)
-    frames = check_positive(frames, "frames", integer=True)
-    if frames < 2:
-        raise ValueError(f"frames must be >= 2, got {frames}")
+    frames = _check_frames(frames)
     check_positive(noise, "noise", allow_zero=True)
     if not 0 <= perspective <= 0.5:
         raise ValueError(f"perspective must be in [0, 0.5], got {perspective!r}")
