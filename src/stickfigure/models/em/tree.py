@@ -72,11 +72,13 @@ def with_spare_endpoint(st: StickState, priors: Priors) -> StickState:
     """A copy of ``st`` with one more endpoint per stick (E -> E + 1), each on a vertex of its own.
 
     The new endpoint starts at the centroid of its stick's points (in the stick's
-    frame); its vertex at the endpoint's prediction with the prior's shape and the
-    points' precision as its rate (as :func:`.initialise.initial_state` starts every
-    vertex). Endpoint ``i`` of stick ``s`` keeps its place ``i`` among the stick's
-    endpoints; the spare is the last.
+    frame); its vertex at the endpoint's prediction, with the precision the prior and
+    the noise level give (:func:`.refine.start_vertices`, as
+    :func:`.initialise.initial_state` starts every vertex). Endpoint ``i`` of stick
+    ``s`` keeps its place ``i`` among the stick's endpoints; the spare is the last.
     """
+    from .refine import start_vertices
+
     S, E = st.n_sticks, st.ends_per_stick
     J, F, D = st.mu_v.shape
     out = st.copy()
@@ -96,11 +98,11 @@ def with_spare_endpoint(st: StickState, priors: Priors) -> StickState:
     out.mu_e[new] = pred
     out.tau_e = np.empty(n)
     out.tau_e[old] = st.tau_e
-    alpha = np.full(S, priors.alpha0 + 0.5 * D * F)
-    out.alpha = np.concatenate([st.alpha, alpha])
-    out.beta = np.concatenate([st.beta, alpha / st.tau_w])
-    out.mu_v = np.concatenate([st.mu_v, pred])
-    out.tau_v = np.concatenate([st.tau_v, st.tau_w + st.tau_t * chain_degree(F)[None, :].repeat(S, axis=0)])
+    out.alpha = np.concatenate([st.alpha, np.ones(S)])
+    out.beta = np.concatenate([st.beta, np.ones(S)])
+    out.mu_v = np.concatenate([st.mu_v, np.zeros((S, F, D))])
+    out.tau_v = np.concatenate([st.tau_v, np.ones((S, F))])
+    start_vertices(out, J + np.arange(S), out.mu_e, priors)
     if st.ghosts is not None:
         out.ghosts = st.ghosts.grown(S)
     out._design = None
