@@ -260,13 +260,48 @@ def test_two_one_point_sticks_are_linked_only_where_nothing_else_spans(monkeypat
                         lambda st, sticks, k0: (None, residual[tuple(sorted(sticks))]))
     st = SimpleNamespace(labels=np.array([0, 0, 0, 0, 1, 2]), n_sticks=3, n_vertices=4, ends_per_stick=2,
                          vertex_of=np.array([0, 1, 0, 2, 0, 3]), ends=np.zeros((6, 3)),
-                         stick_sizes=lambda: np.bincount(st.labels, minlength=st.n_sticks))
+                         stick_sizes=lambda: np.bincount(st.labels, minlength=st.n_sticks),
+                         joints_per_stick=lambda: _joints_per_stick(st))
     assert stick_edges(st) == ([(0, 1), (0, 2)], [0, 0])
     # Two 2-point sticks may be a chain at that vertex: the residuals decide, as with three
     # 1-point sticks.
     for labels in ([0, 0, 0, 0, 1, 1, 2, 2], [0, 1, 2]):
         st.labels = np.array(labels)
         assert stick_edges(st) == ([(0, 2), (1, 2)], [0, 0])
+
+
+def _joints_per_stick(st) -> np.ndarray:
+    cnt = np.bincount(st.vertex_of, minlength=st.n_vertices)
+    return (cnt[st.vertex_of] >= 2).reshape(st.n_sticks, -1).sum(axis=1)
+
+
+def test_a_stick_joined_only_at_a_vertex_is_never_between_two_others(monkeypatch):
+    # CMU 85_02 from 283/23 degrees: the head (4 points, no other joint), RSHO and RUPA
+    # (1-point sticks, RSHO on the thorax 3, RUPA on the forearm 4) share one vertex. The
+    # spanning tree of all three ran the shoulder through the head, whose residual with RUPA
+    # is the smaller; the head is a leaf and hangs from the side holding more points.
+    from types import SimpleNamespace
+
+    import stickfigure.models.em.structure as structure
+
+    residual = {(0, 1): 3.6e-6, (0, 2): 1.6e-6, (1, 2): 0.96e-6}
+    monkeypatch.setattr(structure, "joint_least_squares",
+                        lambda st, sticks, k0: (None, residual[tuple(sorted(sticks))]))
+    labels = [0] * 4 + [1, 2] + [3] * 5 + [4] * 2
+    st = SimpleNamespace(labels=np.array(labels), n_sticks=5, n_vertices=6, ends_per_stick=2,
+                         vertex_of=np.array([0, 3, 0, 1, 0, 2, 1, 4, 2, 5]), ends=np.zeros((10, 3)),
+                         stick_sizes=lambda: np.bincount(st.labels, minlength=st.n_sticks),
+                         joints_per_stick=lambda: _joints_per_stick(st))
+    assert stick_edges(st) == ([(0, 1), (1, 2), (1, 3), (2, 4)], [0, 0, 1, 2])
+    # The forearm's side made the larger: the head hangs from RUPA.
+    st.labels = np.array([0] * 4 + [1, 2] + [3] * 2 + [4] * 5)
+    assert stick_edges(st)[0][:2] == [(0, 2), (1, 2)]
+    # RUPA of two points: its residuals mean something, and the spanning tree of all three
+    # decides, not the sides (a 2-point thigh whose hip and knee share one vertex is a link
+    # of its chain there, though it has no other joint).
+    st.labels = np.array([0] * 4 + [1, 2, 2] + [3] * 5 + [4] * 2)
+    residual.update({(0, 1): 20e-6})
+    assert stick_edges(st)[0][:2] == [(0, 2), (1, 2)]
 
 
 def test_no_merge_makes_a_joint_of_one_point_sticks_only():

@@ -251,16 +251,33 @@ def stick_edges(st: StickState, obs: Observations | None = None) -> tuple[list[t
     """Stick pairs joined by a shared vertex, and the vertex of each.
 
     A vertex shared by two sticks gives one edge. A vertex shared by k >= 3
-    sticks gives k - 1 edges: the minimum spanning tree of its sticks under the
-    pairwise least-squares joint residual (how well the two sticks alone can
-    share a point over all frames), so the tree links the sticks that really
-    articulate about that point. Two 1-point sticks are linked only where no
-    other spanning tree exists: a 1-point stick's rotation is fixed by its
-    joints alone, so any two of them share a point closely whatever they are
-    (CMU's two thigh markers as 1-point sticks on the pelvis's vertex were linked
-    to each other, not both to the pelvis). A 2-point stick's point pair fixes
-    two of its three angles, and a chain of two of them at one vertex can be
-    right (HDM05's RTHI+RKNE and RSHN+RHEE beside the pelvis stick).
+    sticks gives k - 1 edges, a spanning tree of its sticks. Every such tree
+    describes the same model (the sticks share one point), so the choice only
+    says which sticks articulate about that point:
+
+    * The minimum spanning tree of its sticks under the pairwise least-squares
+      joint residual (how well the two sticks alone can share a point over all
+      frames), so the tree links the sticks that really articulate about that
+      point. Two 1-point sticks are linked only where no other spanning tree
+      exists: a 1-point stick's rotation is fixed by its joints alone, so any
+      two of them share a point closely whatever they are (CMU's two thigh
+      markers as 1-point sticks on the pelvis's vertex were linked to each
+      other, not both to the pelvis). A 2-point stick's point pair fixes two of
+      its three angles, and a chain of two of them at one vertex can be right
+      (HDM05's RTHI+RKNE and RSHN+RHEE beside the pelvis stick; CMU 85_02 from
+      254/33 degrees: the pelvis, LTHI+LKNE and the 1-point LSHN, where the thigh
+      has no other joint).
+    * Except where the sticks with joints elsewhere (*through* sticks: chains
+      pass the vertex) are two or more 1-point sticks. Their residuals with
+      anything are small, and the bar on linking two of them then routes the
+      chain through a stick whose only joint is this vertex (a *leaf*: nothing
+      lies beyond it). There the through sticks are linked to each other, and
+      each leaf hangs from the through stick whose side of the vertex holds the
+      most points, the side nearer the figure's centre. On CMU 85_02 seen from
+      283/23 degrees the head, RSHO and RUPA (RSHO also joined to the thorax, RUPA to the
+      forearm) share the neck's vertex; the spanning tree of all three ran the
+      shoulder through the head (RSHO-head-RUPA: the pair is barred, and the
+      head's residual with RUPA, 1.6e-6, is below that with RSHO, 3.6e-6).
     """
     import networkx as nx
 
@@ -268,6 +285,7 @@ def stick_edges(st: StickState, obs: Observations | None = None) -> tuple[list[t
     verts: list[int] = []
     E = st.ends_per_stick
     sizes = st.stick_sizes()
+    n_joints = st.joints_per_stick()
     for j in range(st.n_vertices):
         own = np.flatnonzero(st.vertex_of == j)
         k_of = {int(i // E): st.ends[i] for i in own}
@@ -278,21 +296,41 @@ def stick_edges(st: StickState, obs: Observations | None = None) -> tuple[list[t
             edges.append((sticks[0], sticks[1]))
             verts.append(j)
             continue
+        through = [a for a in sticks if n_joints[a] >= 2]
+        tree_of = through if len(through) >= 2 and np.all(sizes[through] == 1) else sticks
         g = nx.Graph()
-        small = {a for a in sticks if sizes[a] < 2}
-        if len(small) == len(sticks):
+        g.add_nodes_from(tree_of)
+        small = {a for a in tree_of if sizes[a] < 2}
+        if len(small) == len(tree_of):
             small = set()
-        pairs = [(a, b) for ia, a in enumerate(sticks) for b in sticks[ia + 1:]]
+        pairs = [(a, b) for ia, a in enumerate(tree_of) for b in tree_of[ia + 1:]]
         res = [joint_least_squares(st, [a, b], [k_of[a], k_of[b]])[1] for a, b in pairs]
         # An edge between two 1-point sticks weighs more than any other spanning tree: it is taken
         # only where no other spanning tree exists.
         extra = 1.0 + float(np.sum(res))
         for (a, b), r in zip(pairs, res):
             g.add_edge(a, b, weight=r + (extra if a in small and b in small else 0.0))
-        for a, b in sorted(nx.minimum_spanning_tree(g).edges()):
-            edges.append((min(a, b), max(a, b)))
+        found = [(min(a, b), max(a, b)) for a, b in nx.minimum_spanning_tree(g).edges()]
+        if tree_of is through:
+            for leaf in (a for a in sticks if n_joints[a] < 2):
+                found.append(tuple(sorted((leaf, _leaf_parent(st, leaf, through, own)))))
+        for a, b in sorted(found):
+            edges.append((a, b))
             verts.append(j)
     return edges, verts
+
+
+def _leaf_parent(st: StickState, leaf: int, through: list[int], own: np.ndarray) -> int:
+    """The through stick a leaf hangs from (:func:`stick_edges`): the one whose side of the
+    vertex holds the most points."""
+    E = st.ends_per_stick
+    sizes = st.stick_sizes()
+    held = []
+    for a in through:
+        e = int(own[own // E == a][0])
+        comp = components(st, e)[0]  # a's side: the part cut off with its endpoint on the vertex
+        held.append(int(sizes[comp == comp[a]].sum()))
+    return int(through[int(np.argmax(held))])
 
 
 def joint_support(st: StickState, edges: list[tuple[int, int]], verts: list[int]) -> tuple[np.ndarray, np.ndarray]:
