@@ -296,11 +296,17 @@ def test_a_stick_joined_only_at_a_vertex_is_never_between_two_others(monkeypatch
     # The forearm's side made the larger: the head hangs from RUPA.
     st.labels = np.array([0] * 4 + [1, 2] + [3] * 2 + [4] * 5)
     assert stick_edges(st)[0][:2] == [(0, 2), (1, 2)]
-    # RUPA of two points: its residuals mean something, and the spanning tree of all three
-    # decides, not the sides (a 2-point thigh whose hip and knee share one vertex is a link
-    # of its chain there, though it has no other joint).
+    # RUPA of two points, the head too: a 2-point leaf beside a through stick of more points
+    # stays in the spanning tree, and may be a link of a chain there (CMU 85_02 from 254/33
+    # degrees: LTHI+LKNE between the pelvis and the 1-point LSHN, hip and knee on one vertex).
+    st.labels = np.array([0] * 2 + [1, 2, 2] + [3] * 5 + [4] * 2)
+    residual.update({(0, 1): 1e-6, (0, 2): 1e-6, (1, 2): 9e-6})
+    assert stick_edges(st)[0][:2] == [(0, 1), (0, 2)]
+    # A head of four points with RUPA of two: the head hangs from RUPA, the through stick of
+    # more than one point, whatever its residual with RSHO (placed CMU 131_01 from 181/15
+    # degrees: the head, the 1-point LTHI and the pelvis; the hip ran through the head).
     st.labels = np.array([0] * 4 + [1, 2, 2] + [3] * 5 + [4] * 2)
-    residual.update({(0, 1): 20e-6})
+    residual.update({(0, 1): 1e-9, (0, 2): 5e-6, (1, 2): 9e-6})
     assert stick_edges(st)[0][:2] == [(0, 2), (1, 2)]
 
 

@@ -267,17 +267,24 @@ def stick_edges(st: StickState, obs: Observations | None = None) -> tuple[list[t
       (HDM05's RTHI+RKNE and RSHN+RHEE beside the pelvis stick; CMU 85_02 from
       254/33 degrees: the pelvis, LTHI+LKNE and the 1-point LSHN, where the thigh
       has no other joint).
-    * Except where the sticks with joints elsewhere (*through* sticks: chains
-      pass the vertex) are two or more 1-point sticks. Their residuals with
-      anything are small, and the bar on linking two of them then routes the
-      chain through a stick whose only joint is this vertex (a *leaf*: nothing
-      lies beyond it). There the through sticks are linked to each other, and
-      each leaf hangs from the through stick whose side of the vertex holds the
-      most points, the side nearer the figure's centre. On CMU 85_02 seen from
-      283/23 degrees the head, RSHO and RUPA (RSHO also joined to the thorax, RUPA to the
-      forearm) share the neck's vertex; the spanning tree of all three ran the
-      shoulder through the head (RSHO-head-RUPA: the pair is barred, and the
-      head's residual with RUPA, 1.6e-6, is below that with RSHO, 3.6e-6).
+    * A stick whose only joint is this vertex (a *leaf*: nothing lies beyond
+      it) is kept out of that tree where two or more sticks have joints
+      elsewhere (*through* sticks: chains pass the vertex), and hangs from one
+      of them, so that no chain runs through it: the through stick of least
+      residual among those of two or more points, else (all are 1-point sticks,
+      whose residuals with anything are small) the one whose side of the vertex
+      holds the most points, the side nearer the figure's centre. This holds
+      for leaves of three or more points, and for every leaf where the through
+      sticks are all 1-point sticks. A 2-point leaf with a through stick of more
+      points stays in the tree: it turns freely about the line through its
+      points, and a chain link whose two joints met at one vertex is of this
+      kind (the thigh above). On CMU 85_02 seen from 283/23 degrees the head,
+      RSHO and RUPA (RSHO also joined to the thorax, RUPA to the forearm)
+      share the neck's vertex; the spanning tree of all three ran the shoulder
+      through the head (RSHO-head-RUPA: the pair is barred, and the head's
+      residual with RUPA, 1.6e-6, is below that with RSHO, 3.6e-6). On the
+      placed CMU 131_01 walk from 181/15 degrees the head stick, LTHI and the
+      pelvis share a vertex, and the tree ran the hip through the head.
     """
     import networkx as nx
 
@@ -297,7 +304,11 @@ def stick_edges(st: StickState, obs: Observations | None = None) -> tuple[list[t
             verts.append(j)
             continue
         through = [a for a in sticks if n_joints[a] >= 2]
-        tree_of = through if len(through) >= 2 and np.all(sizes[through] == 1) else sticks
+        hang: list[int] = []
+        if len(through) >= 2:
+            one_point = bool(np.all(sizes[through] == 1))
+            hang = [a for a in sticks if n_joints[a] < 2 and (one_point or sizes[a] >= 3)]
+        tree_of = [a for a in sticks if a not in hang]
         g = nx.Graph()
         g.add_nodes_from(tree_of)
         small = {a for a in tree_of if sizes[a] < 2}
@@ -311,20 +322,24 @@ def stick_edges(st: StickState, obs: Observations | None = None) -> tuple[list[t
         for (a, b), r in zip(pairs, res):
             g.add_edge(a, b, weight=r + (extra if a in small and b in small else 0.0))
         found = [(min(a, b), max(a, b)) for a, b in nx.minimum_spanning_tree(g).edges()]
-        if tree_of is through:
-            for leaf in (a for a in sticks if n_joints[a] < 2):
-                found.append(tuple(sorted((leaf, _leaf_parent(st, leaf, through, own)))))
+        for leaf in hang:
+            found.append(tuple(sorted((leaf, _leaf_parent(st, leaf, through, k_of, own)))))
         for a, b in sorted(found):
             edges.append((a, b))
             verts.append(j)
     return edges, verts
 
 
-def _leaf_parent(st: StickState, leaf: int, through: list[int], own: np.ndarray) -> int:
-    """The through stick a leaf hangs from (:func:`stick_edges`): the one whose side of the
-    vertex holds the most points."""
+def _leaf_parent(st: StickState, leaf: int, through: list[int], k_of: dict, own: np.ndarray) -> int:
+    """The through stick a leaf hangs from (:func:`stick_edges`): the one of least residual
+    among those of two or more points, else the one whose side of the vertex holds the most
+    points."""
     E = st.ends_per_stick
     sizes = st.stick_sizes()
+    multi = [a for a in through if sizes[a] >= 2]
+    if multi:
+        res = [joint_least_squares(st, [leaf, a], [k_of[leaf], k_of[a]])[1] for a in multi]
+        return int(multi[int(np.argmin(res))])
     held = []
     for a in through:
         e = int(own[own // E == a][0])
