@@ -323,19 +323,19 @@ def stick_edges(st: StickState, obs: Observations | None = None) -> tuple[list[t
             g.add_edge(a, b, weight=r + (extra if a in small and b in small else 0.0))
         found = [(min(a, b), max(a, b)) for a, b in nx.minimum_spanning_tree(g).edges()]
         for leaf in hang:
-            found.append(tuple(sorted((leaf, _leaf_parent(st, leaf, through, k_of, own)))))
+            found.append(tuple(sorted((leaf, _leaf_parent(st, leaf, through, k_of, own, sizes)))))
         for a, b in sorted(found):
             edges.append((a, b))
             verts.append(j)
     return edges, verts
 
 
-def _leaf_parent(st: StickState, leaf: int, through: list[int], k_of: dict, own: np.ndarray) -> int:
+def _leaf_parent(st: StickState, leaf: int, through: list[int], k_of: dict, own: np.ndarray,
+                 sizes: np.ndarray) -> int:
     """The through stick a leaf hangs from (:func:`stick_edges`): the one of least residual
     among those of two or more points, else the one whose side of the vertex holds the most
-    points."""
+    points (``sizes``: points per stick, as :meth:`StickState.stick_sizes`)."""
     E = st.ends_per_stick
-    sizes = st.stick_sizes()
     multi = [a for a in through if sizes[a] >= 2]
     if multi:
         res = [joint_least_squares(st, [leaf, a], [k_of[leaf], k_of[a]])[1] for a in multi]
