@@ -101,7 +101,7 @@ def test_bridge_points_takes_the_point_off_the_stick_it_bent(star):
     traj, st, wrong, value, p, obs, settings, priors = star
 
     def crit(s, v):
-        return bic(s, obs, v)
+        return bic(s, obs, v, priors)
 
     new, val, sweeps, kept = bridge_points(wrong, obs, priors, settings, np.random.default_rng(3), value, crit, 2)
     assert len(kept) == 1 and kept[0]["point"] == p
@@ -133,7 +133,7 @@ def test_bridge_points_gives_the_same_model_in_one_process_or_two(star):
     traj, st, wrong, value, p, obs, settings, priors = star
 
     def crit(s, v):
-        return bic(s, obs, v)
+        return bic(s, obs, v, priors)
 
     one = bridge_points(wrong, obs, priors, replace(settings, n_jobs=1), np.random.default_rng(4), value, crit, 2)
     two = bridge_points(wrong, obs, priors, replace(settings, n_jobs=2), np.random.default_rng(4), value, crit, 2)
@@ -184,7 +184,7 @@ def test_unpair_hubs_parts_two_lumped_one_marker_segments(seed):
     p, q = np.flatnonzero(traj.labels_true == 1)[0], np.flatnonzero(traj.labels_true == 2)[0]
 
     def crit(s, v):
-        return bic(s, obs, v)
+        return bic(s, obs, v, priors)
 
     new, val, sweeps, kept = unpair_hubs(st, obs, priors, settings, np.random.default_rng(1), value, crit)
     assert kept == [[p, q]] and sweeps > 0 and crit(new, val) > crit(st, value)
@@ -207,7 +207,7 @@ def test_unpair_hubs_gives_the_same_model_in_one_process_or_two_and_spares_the_c
     settings = replace(settings, resample_every=10)  # so that a trial's EM run draws numbers
 
     def crit(s, v):
-        return bic(s, obs, v)
+        return bic(s, obs, v, priors)
 
     rngs = [np.random.default_rng(1), np.random.default_rng(1)]
     one = unpair_hubs(st, obs, priors, replace(settings, n_jobs=1), rngs[0], value, crit)

@@ -14,8 +14,9 @@ import pytest
 
 import stickfigure as sf
 from stickfigure.models.em import fit_stages
-from stickfigure.models.em.model import Priors, hub_endpoints, normalise, objective
-from stickfigure.models.em.structure import EMSettings, merge_candidates, stick_edges
+from stickfigure.models.em.model import (Priors, free_endpoint_terms, hub_endpoints, normalise, objective,
+                                        structure_log_prior)
+from stickfigure.models.em.structure import EMSettings, bic, merge_candidates, stick_edges
 from stickfigure.models.em.tree import detach_endpoint, with_spare_endpoint, without_spare_endpoints
 
 
@@ -54,6 +55,43 @@ def test_a_spare_endpoint_per_stick_and_back(fitted):
     for name in ("vertex_of", "ends", "mu_e", "tau_e", "mu_v", "tau_v", "alpha", "beta"):
         np.testing.assert_array_equal(getattr(back, name), getattr(st, name), err_msg=name)
     assert objective(back, obs, priors) == pytest.approx(objective(st, obs, priors), rel=1e-12)
+
+
+def test_free_endpoints_and_the_bic(fitted):
+    # A spare endpoint per stick explains nothing; its vertex chain alone adds about
+    # D/2 log(tau_t / 2 pi) a frame to the objective (model.free_endpoint_terms). BIC with
+    # free_ends=False leaves it out, so the wider model differs only by the structure prior
+    # log P(G), whose weights d_j = n_j / (E S) change with E; the default counts it.
+    traj, st, obs, settings, priors = fitted
+    wide = with_spare_endpoint(st, priors)
+    gain = objective(wide, obs, priors) - objective(st, obs, priors)
+    prior = (structure_log_prior(wide.labels, wide.n_sticks, wide.vertex_of, wide.n_vertices)
+             - structure_log_prior(st.labels, st.n_sticks, st.vertex_of, st.n_vertices))
+    assert gain - prior > 2.0 * st.n_sticks * st.n_frames
+    assert free_endpoint_terms(wide, obs, priors) - free_endpoint_terms(st, obs, priors) == pytest.approx(
+        gain - prior, rel=1e-9)
+
+    def change(free_ends):
+        return (bic(wide, obs, objective(wide, obs, priors), priors, free_ends)
+                - bic(st, obs, objective(st, obs, priors), priors, free_ends))
+
+    assert change(False) == pytest.approx(prior, abs=1e-6 * abs(gain))
+    assert change(True) == pytest.approx(gain, rel=1e-9)
+
+
+def test_bic_free_ends_reaches_every_stage():
+    # Stage 0 (no joints yet) is the same model either way; with bic_free_ends=False its BIC
+    # leaves out every endpoint's terms, far more than the default's.
+    traj = sf.synthetic.random_figure(n_sticks=3, frames=60, noise=0.01, seed=2)
+    kw = dict(random_state=0, labels=traj.labels_true, n_iter=60)
+    counted = sf.fit(traj, method="em", **kw)
+    left = sf.fit(traj, method="em", bic_free_ends=False, **kw)
+    a, b = counted.info["stages"][0], left.info["stages"][0]
+    assert a["objective"] == b["objective"] and a["labels"] == b["labels"]
+    assert a["bic"] - b["bic"] > 2.0 * 3 * 3 * 60  # 9 free endpoints, 60 frames
+    assert left.params["bic_free_ends"] is False
+    with pytest.raises(ValueError, match="bic_free_ends"):
+        sf.fit(traj, method="em", bic_free_ends="no", **kw)
 
 
 def test_no_spare_to_remove_from_a_full_stick():

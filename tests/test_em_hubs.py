@@ -34,7 +34,7 @@ def test_a_hub_of_two_parts_is_split_with_each_joint_on_its_part(seed):
     lumped = np.where(T == 1, 0, np.where(T > 1, T - 1, T))  # thorax on the pelvis's stick
     st, value, obs, settings, priors = jointed(traj, lumped, [{0, 1}, {0, 2}, {0, 3}])
     assert not (st.vertex_counts()[st.vertex_of[:3]] == 1).any()  # the hub has no free endpoint
-    crit = lambda s, v: bic(s, obs, v)  # noqa: E731
+    crit = lambda s, v: bic(s, obs, v, priors)  # noqa: E731
     new, val, _, split = split_hubs(st, obs, priors, settings, np.random.default_rng(0), value, crit)
     assert split == [0]
     assert crit(new, val) > crit(st, value)
@@ -48,7 +48,7 @@ def test_a_rigid_hub_is_left_alone():
     traj = _trunk_figure(0)
     T = traj.labels_true
     st, value, obs, settings, priors = jointed(traj, T, [{0, 1}, {0, 2}, {1, 3}, {1, 4}])
-    crit = lambda s, v: bic(s, obs, v)  # noqa: E731
+    crit = lambda s, v: bic(s, obs, v, priors)  # noqa: E731
     new, val, sweeps, split = split_hubs(st, obs, priors, settings, np.random.default_rng(0), value, crit)
     assert split == [] and sweeps == 0 and new is st
 

@@ -64,7 +64,7 @@ def test_a_fitted_tree_offers_no_cut(star):
     assert cut_proposals(st, obs, 0.8) == []
     value = objective(st, obs, priors)
     same, v, n, moves = reattach_subtrees(st, obs, priors, settings, np.random.default_rng(0), value,
-                                          lambda s, val: bic(s, obs, val))
+                                          lambda s, val: bic(s, obs, val, priors))
     assert moves == [] and same is st and v == value and n == 0
 
 
@@ -79,10 +79,10 @@ def test_leaf_hung_from_the_wrong_stick_is_moved_back(star):
     props = cut_proposals(wrong, obs, 0.8)
     assert props and props[0][0] < 0.1
     back, v, n, moves = reattach_subtrees(wrong, obs, priors, settings, np.random.default_rng(2), value,
-                                          lambda s, val: bic(s, obs, val))
+                                          lambda s, val: bic(s, obs, val, priors))
     assert _norm(stick_edges(back)[0]) == _norm(stick_edges(st)[0])
     assert len(moves) == 1 and set(moves[0]["was"]) == {leaf, other} and n > 0
-    assert bic(back, obs, v) > bic(wrong, obs, value)
+    assert bic(back, obs, v, priors) > bic(wrong, obs, value, priors)
     # The joint is back where it was: the leaf's joint with its parent.
     E = st.ends_per_stick
 

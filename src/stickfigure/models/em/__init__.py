@@ -76,6 +76,17 @@ class EMSkeleton(StickEstimator):
         over random cameras, though more on a walk with rigid markers (docs/em.md
         sections 6 and 11). Turn it on for a figure whose largest part holds more
         joints than ``n_ends`` (:func:`stickfigure.synthetic.star`).
+    bic_free_ends : bool
+        Whether BIC counts the objective's terms of the endpoints on no joint (True,
+        the objective as it is) or leaves them out (False,
+        :func:`.model.free_endpoint_terms`). Such an endpoint explains no
+        observation, yet its vertex's chain adds about ``D/2 log(tau_t / 2pi)`` a
+        frame, so with True a model with more sticks or more endpoints per stick
+        gains by them alone. Default True: with False, random figures, the placed
+        CMU walk and two hard cameras of the recorded take came out better, but
+        four other cameras of that take and its isometric view at 120 Hz lost their
+        body tree (docs/em.md sections 7 and 11). Compare fits with different
+        ``n_ends`` or ``hub_end`` by their BIC only with False.
     endpoint_init : {"axis", "centroid"}
         Start a stick's endpoints along its principal axis (the first two at its
         ends), or all at its centroid (the paper).
@@ -361,7 +372,7 @@ class EMSkeleton(StickEstimator):
                  dissolve_scope: str = "all",
                  remerge: bool = True, split_dissolved: int = 4,
                  unpair: bool = True, bridge_points: int = 2, split_hubs: bool = True, reattach: bool = True,
-                 spare_end: bool = False, hub_end: bool = False,
+                 spare_end: bool = False, hub_end: bool = False, bic_free_ends: bool = True,
                  max_trees: int | str | None = "auto", retry_mid_air: float | None = None,
                  merge_rank: str = "residual", align_mirrors: bool = True,
                  max_frames: int | None = 400, oversegment: float | None = 3.5, n_jobs: int | None = None,
@@ -405,6 +416,7 @@ class EMSkeleton(StickEstimator):
         self.reattach = reattach
         self.spare_end = spare_end
         self.hub_end = hub_end
+        self.bic_free_ends = bic_free_ends
         self.max_trees = max_trees
         self.retry_mid_air = retry_mid_air
         self.merge_rank = merge_rank
@@ -466,7 +478,7 @@ class EMSkeleton(StickEstimator):
                              f"got {self.retry_mid_air!r}")
         if self.merge_rank not in ("objective", "residual"):
             raise ValueError(f"merge_rank must be 'objective' or 'residual', got {self.merge_rank!r}")
-        for name in ("align_mirrors", "spare_end", "hub_end"):
+        for name in ("align_mirrors", "spare_end", "hub_end", "bic_free_ends"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
         for name in ("max_candidates", "max_merges", "max_sticks", "max_frames", "n_jobs"):
@@ -497,7 +509,7 @@ class EMSkeleton(StickEstimator):
                               unpair=bool(self.unpair),
                               bridge_points=int(self.bridge_points), split_hubs=bool(self.split_hubs),
                               reattach=bool(self.reattach), spare_end=bool(self.spare_end),
-                              hub_end=bool(self.hub_end),
+                              hub_end=bool(self.hub_end), bic_free_ends=bool(self.bic_free_ends),
                               max_trees=None if self.max_trees in (None, "auto") else int(self.max_trees),
                               endpoint_init=self.endpoint_init, n_ends=int(self.n_ends),
                               merge_rank=str(self.merge_rank), align_mirrors=bool(self.align_mirrors))
@@ -731,7 +743,7 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
         full, value, sweeps = run_em(full, obs_all, priors, settings, settings.n_iter, rng)
         info0["refit"] = {"search_frames": int(frames.size), "frames": int(obs_all.n_frames),
                           "objective": float(value),
-                          "bic": bic(full, obs_all, value),
+                          "bic": bic(full, obs_all, value, priors, settings.bic_free_ends),
                           "n_sweeps": int(sweeps), "labels_changed": int(np.sum(full.labels != sel.labels))}
         sel.state = full
         for s in stages:  # states on the searched frames only would not match the data any more

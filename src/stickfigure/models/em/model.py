@@ -445,7 +445,7 @@ def objective_terms(state: StickState, obs: Observations, priors: Priors) -> tup
     F = state.n_frames
     S, J = state.n_sticks, state.n_vertices
     des = state.design(obs)
-    tw, tm, tt, tp = state.tau_w, state.tau_m, state.tau_t, priors.tau_p
+    tw, tt, tp = state.tau_w, state.tau_t, priors.tau_p
 
     # --- per stick: points
     sq = des.residual_sq(state.rot, state.trans, state.local)  # (S,)
@@ -455,13 +455,8 @@ def objective_terms(state: StickState, obs: Observations, priors: Priors) -> tup
     per_stick = per_stick + des.stick_sum(lprior)
 
     # --- per stick: endpoints given the stick, their prior and entropy
-    eres = state.mu_e - state.end_predictions()
-    esq = np.sum(eres * eres, axis=(1, 2))  # (2S,)
     inv_te = 1.0 / state.tau_e
-    end_term = F * 0.5 * D * (np.log(tm) - LOG2PI) - 0.5 * tm * (esq + F * D * inv_te)
-    end_term += F * 0.5 * D * (1.0 + LOG2PI - np.log(state.tau_e))
-    end_term += 1.5 * (np.log(tp) - LOG2PI) - 0.5 * tp * np.sum(state.ends ** 2, axis=1)
-    per_stick = per_stick + end_term.reshape(S, -1).sum(axis=1)
+    per_stick = per_stick + endpoint_terms(state, priors).reshape(S, -1).sum(axis=1)
 
     # --- per vertex: endpoint-vertex coupling
     a = state.alpha / state.beta
@@ -496,6 +491,47 @@ def objective_terms(state: StickState, obs: Observations, priors: Priors) -> tup
     h_gamma = al - np.log(be) + gammaln(al) + (1.0 - al) * digamma(al)
     per_vertex = per_vertex + e_prior + h_gamma
     return per_stick, per_vertex
+
+
+def endpoint_terms(state: StickState, priors: Priors) -> np.ndarray:
+    """Each endpoint's own terms of the objective (E S,): ``e | stick``, ``H[e]`` and its K prior.
+
+    ``F D/2 log(tau_m / 2pi) - tau_m/2 (|mu(e) - R k - t|^2 + F D / tau(e))
+    + F D/2 (1 + log 2pi - log tau(e)) + 3/2 log(tau_p / 2pi) - tau_p/2 |k|^2``
+    (:func:`objective_terms` adds them to their stick's part).
+    """
+    D, F = state.n_dims, state.n_frames
+    tm = state.tau_m
+    eres = state.mu_e - state.end_predictions()
+    esq = np.sum(eres * eres, axis=(1, 2))  # (ES,)
+    out = F * 0.5 * D * (np.log(tm) - LOG2PI) - 0.5 * tm * (esq + F * D / state.tau_e)
+    out += F * 0.5 * D * (1.0 + LOG2PI - np.log(state.tau_e))
+    out += 1.5 * (np.log(priors.tau_p) - LOG2PI) - 0.5 * priors.tau_p * np.sum(state.ends ** 2, axis=1)
+    return out
+
+
+def free_endpoint_terms(state: StickState, obs: Observations, priors: Priors) -> float:
+    """What the endpoints on no joint add to the objective: their own terms and their vertices'.
+
+    An endpoint alone on its vertex explains no observation, yet its terms are not
+    zero. Its vertex's chain has a flat start and Gaussian steps of precision
+    ``tau_t``, so it contributes the log density of the endpoint's path, about
+    ``(F - 1) D/2 log(tau_t / 2pi)`` less the steps' squared sizes: a smoothness
+    prior on the stick's motion, counted once more for every free endpoint of the
+    stick. With a flat start the chain is not a normalised density, and
+    in the data's normalised units (unit RMS spread) these terms are large and
+    positive: 3.5 per frame and free endpoint on a 5-stick random figure, 5-7 on
+    the CMU 41-marker walk (docs/em.md section 7). Within one merge search the
+    free endpoints fall by the same number at every merge, but a model with more
+    sticks, or more endpoints per stick, has more of them, and gains that much
+    whatever the data say. :func:`structure.bic` subtracts this sum with
+    ``free_ends=False`` (the estimator's ``bic_free_ends=False``).
+    """
+    _, per_vertex = objective_terms(state, obs, priors)
+    alone = state.vertex_counts() == 1
+    if state.ghosts is not None:
+        alone &= state.ghosts.n == 0
+    return float(endpoint_terms(state, priors)[alone[state.vertex_of]].sum() + per_vertex[alone].sum())
 
 
 def structure_log_prior(labels: np.ndarray, n_sticks: int, vertex_of: np.ndarray, n_vertices: int) -> float:

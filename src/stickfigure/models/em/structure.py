@@ -70,7 +70,8 @@ import numpy as np
 
 from .assign import resample_assignments
 from .forked import in_halves
-from .model import Ghosts, Observations, Priors, StickState, chain_degree, objective, objective_terms
+from .model import (Ghosts, Observations, Priors, StickState, chain_degree, free_endpoint_terms, objective,
+                    objective_terms)
 from .updates import em_sweep, update_endpoints
 
 __all__ = ["EMSettings", "run_em", "components", "merge_candidates", "Candidate", "score_candidates",
@@ -116,6 +117,7 @@ class EMSettings:
     reattach: bool = True
     spare_end: bool = False
     hub_end: bool = False
+    bic_free_ends: bool = True
     max_trees: int | None = None
     merge_rank: str = "residual"
     align_mirrors: bool = True
@@ -944,8 +946,16 @@ def n_parameters(st: StickState, obs: Observations) -> int:
     return int(3 * st.n_sticks * F + D * F * trees + 3 * obs.n_points + 3 * in_joint.sum() + 3)
 
 
-def bic(st: StickState, obs: Observations, value: float) -> float:
-    """The selection criterion ``value - n_parameters / 2 log N`` (N observed coordinates)."""
+def bic(st: StickState, obs: Observations, value: float, priors: Priors, free_ends: bool = True) -> float:
+    """The selection criterion ``value - n_parameters / 2 log N`` (N observed coordinates).
+
+    With ``free_ends=False`` the terms of the endpoints on no joint
+    (:func:`model.free_endpoint_terms`) are taken out of ``value`` first: they explain
+    no observation but add about ``D/2 log(tau_t / 2pi)`` a frame each, so a model
+    with more sticks or more endpoints gains by them alone (docs/em.md section 7).
+    """
+    if not free_ends:
+        value = value - free_endpoint_terms(st, obs, priors)
     return float(value - 0.5 * n_parameters(st, obs) * np.log(obs.mask.sum() * obs.n_dims))
 
 
@@ -1024,11 +1034,11 @@ class Stage:
 
 
 def _stage(st: StickState, obs: Observations, value: float, merged: tuple[int, int] | None, sweeps: int,
-           ref: int) -> Stage:
+           ref: int, priors: Priors, settings: EMSettings) -> Stage:
     edges, _ = stick_edges(st)
-    return Stage(objective=value, bic=bic(st, obs, value), labels=st.labels.copy(), vertex_of=st.vertex_of.copy(),
-                 edges=edges, merged=merged, n_sweeps=sweeps, ends_xy=st.mu_e[:, ref].copy(),
-                 joints_xy=st.mu_v[:, ref].copy())
+    return Stage(objective=value, bic=bic(st, obs, value, priors, settings.bic_free_ends), labels=st.labels.copy(),
+                 vertex_of=st.vertex_of.copy(), edges=edges, merged=merged, n_sweeps=sweeps,
+                 ends_xy=st.mu_e[:, ref].copy(), joints_xy=st.mu_v[:, ref].copy())
 
 
 def greedy_merges(st: StickState, obs: Observations, priors: Priors, settings: EMSettings,
@@ -1082,7 +1092,7 @@ def greedy_merges(st: StickState, obs: Observations, priors: Priors, settings: E
             dirty = merged_sticks | moved
             cache = {key: v for key, v in cache.items() if not (v[1] & dirty)}
         k += 1
-        yield _stage(st, obs, val, (j1, j2), sweeps, ref), st
+        yield _stage(st, obs, val, (j1, j2), sweeps, ref, priors, settings), st
 
 
 def learn_structure(st: StickState, obs: Observations, priors: Priors, settings: EMSettings,
@@ -1118,7 +1128,7 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
         refinements.append({"articulated_splits": split})
         st, val = new, v
         sweeps += more
-    stages = [_stage(st, obs, val, None, sweeps, ref)]
+    stages = [_stage(st, obs, val, None, sweeps, ref, priors, settings)]
     stages[0].refinements = refinements
     best = {"objective": (stages[0].objective, 0, st.copy()), "bic": (stages[0].bic, 0, st.copy())}
     total = st.n_sticks - 1 if settings.max_merges is None else min(settings.max_merges, st.n_sticks - 1)
@@ -1144,13 +1154,13 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
         raise ValueError(f"selection must be 'objective' or 'bic', got {selection!r}")
 
     def criterion(s: StickState, v: float) -> float:
-        return bic(s, obs, v) if selection == "bic" else v
+        return bic(s, obs, v, priors, settings.bic_free_ends) if selection == "bic" else v
 
     def keep_stage(state: StickState, value: float, sweeps: int, name: str, record: list) -> None:
         # A move after the search that changed something: its model is a stage of its own, selected
         # whatever its criterion (the moves keep only what improves it, or are wanted anyway).
         if record:
-            stages.append(_stage(state, obs, value, None, sweeps, ref))
+            stages.append(_stage(state, obs, value, None, sweeps, ref, priors, settings))
             setattr(stages[-1], name, record)
             best[selection] = (getattr(stages[-1], selection), len(stages) - 1, state.copy())
 
@@ -1172,7 +1182,7 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
                 cur, val, n, m = resplit_pairs(cur, obs, priors, settings, rng, val, criterion)
                 sweeps, moved = sweeps + n, moved + m
         if gone or moved:
-            stages.append(_stage(cur, obs, val, None, sweeps, ref))
+            stages.append(_stage(cur, obs, val, None, sweeps, ref, priors, settings))
             stages[-1].dissolved = gone
             stages[-1].moved = moved
             for crit in ("objective", "bic"):
@@ -1207,7 +1217,7 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
             cur, v, more, split = articulated_split_round(cur, obs, priors, settings, hrng, settings.split_dissolved)
             val, n = (val if v is None else v), n + more
         if gone:
-            stages.append(_stage(cur, obs, val, None, n, ref))
+            stages.append(_stage(cur, obs, val, None, n, ref, priors, settings))
             stages[-1].dissolved = gone
             stages[-1].heldout = hinfo
             stages[-1].split = split
