@@ -455,10 +455,10 @@ def objective_terms(state: StickState, obs: Observations, priors: Priors) -> tup
     per_stick = per_stick + des.stick_sum(lprior)
 
     # --- per stick: endpoints given the stick, their prior and entropy
-    inv_te = 1.0 / state.tau_e
     per_stick = per_stick + endpoint_terms(state, priors).reshape(S, -1).sum(axis=1)
 
     # --- per vertex: endpoint-vertex coupling
+    inv_te = 1.0 / state.tau_e
     a = state.alpha / state.beta
     elog_phi = digamma(state.alpha) - np.log(state.beta)
     g = state.vertex_of
