@@ -16,7 +16,7 @@ import stickfigure as sf
 from stickfigure.models.em import fit_stages
 from stickfigure.models.em.model import (Priors, free_endpoint_terms, hub_endpoints, normalise, objective,
                                         structure_log_prior)
-from stickfigure.models.em.structure import EMSettings, bic, merge_candidates, stick_edges
+from stickfigure.models.em.structure import EMSettings, bic, merge_candidates, n_parameters, stick_edges
 from stickfigure.models.em.tree import detach_endpoint, with_spare_endpoint, without_spare_endpoints
 
 
@@ -92,6 +92,83 @@ def test_bic_free_ends_reaches_the_recorded_stages():
     assert left.params["bic_free_ends"] is False
     with pytest.raises(ValueError, match="bic_free_ends"):
         sf.fit(traj, method="em", bic_free_ends="no", **kw)
+
+
+@pytest.fixture(scope="module")
+def one_point_limbs():
+    """A hub of 8 points with three 1-point limbs, fitted from its true groups with the
+    assignments held: the selected stage joins limbs 1 and 2 to the hub; limb 3 is free."""
+    traj = sf.synthetic.star(n_limbs=3, frames=60, seed=1, hub_points=8, limb_points=1)
+    settings = EMSettings(n_iter=100, refine_sticks=False, resample_every=0, unpair=False, bridge_points=0,
+                          split_hubs=False)
+    stages, sel, _, _ = fit_stages(traj, settings, Priors(), np.random.default_rng(0), labels=traj.labels_true,
+                                   n_ends=3)
+    obs, _, _ = normalise(traj.xy)
+    return stages[sel].state, obs
+
+
+def test_a_stick_turns_freely_about_the_line_through_two_anchors(one_point_limbs):
+    # The premise of bic_rotations="identified": a 1-point stick on one joint turned about the
+    # line through its point and its jointed endpoint, by another angle in every frame, moves
+    # neither (nor any observation's prediction); only its free endpoints move.
+    from scipy.spatial.transform import Rotation
+
+    st, obs = one_point_limbs
+    E, F = st.ends_per_stick, st.n_frames
+    counts = st.vertex_counts()[st.vertex_of]
+    s = 1
+    assert np.count_nonzero(st.labels == s) == 1 and np.count_nonzero(counts[s * E:(s + 1) * E] >= 2) == 1
+    p = int(np.flatnonzero(st.labels == s)[0])
+    e = s * E + int(np.flatnonzero(counts[s * E:(s + 1) * E] >= 2)[0])
+    x, k = st.local[p], st.ends[e]
+    axis = (k - x) / np.linalg.norm(k - x)
+    Q = Rotation.from_rotvec(np.random.default_rng(3).uniform(-1.0, 1.0, F)[:, None] * axis).as_matrix()
+    turned = st.copy()
+    turned.rot = st.rot.copy()
+    turned.trans = st.trans.copy()
+    turned.rot[s] = st.rot[s] @ Q  # (F, D, 3)
+    turned.trans[s] = st.trans[s] + np.einsum("fdk,fk->fd", st.rot[s], x - Q @ x)
+    np.testing.assert_allclose(turned.point_predictions(), st.point_predictions(), atol=1e-12)
+    before, after = st.end_predictions(), turned.end_predictions()
+    np.testing.assert_allclose(after[e], before[e], atol=1e-12)
+    free = [i for i in range(s * E, (s + 1) * E) if i != e]
+    assert all(np.abs(after[i] - before[i]).max() > 1e-3 for i in free)
+
+
+def test_identified_rotations_in_the_parameter_count(one_point_limbs):
+    # Hub: 8 points, 3 angles a frame either way. Limbs 1 and 2: a point and a joint, 2
+    # identified angles. Limb 3: a point and no joint, none. So "identified" counts
+    # (1 + 1 + 3) F fewer parameters; with only large sticks the two counts agree.
+    st, obs = one_point_limbs
+    assert sorted(map(tuple, stick_edges(st)[0])) == [(0, 1), (0, 2)]
+    assert n_parameters(st, obs, "all") - n_parameters(st, obs, "identified") == 5 * st.n_frames
+    logN = np.log(obs.mask.sum() * obs.n_dims)
+    assert bic(st, obs, 0.0, Priors(), rotations="identified") - bic(st, obs, 0.0, Priors()) == pytest.approx(
+        2.5 * st.n_frames * logN)
+    with pytest.raises(ValueError, match="rotations"):
+        n_parameters(st, obs, "some")
+
+
+def test_identified_rotations_change_nothing_with_large_sticks(fitted):
+    traj, st, obs, settings, priors = fitted
+    assert np.bincount(st.labels).min() >= 3
+    assert n_parameters(st, obs, "identified") == n_parameters(st, obs, "all")
+
+
+def test_bic_rotations_reaches_the_recorded_stages():
+    # Stage 0 (no joints yet) is the same model either way; its three 1-point limbs have one
+    # anchor each, no identified angle, so its recorded BIC is higher by 9 F / 2 log N.
+    traj = sf.synthetic.star(n_limbs=3, frames=60, seed=1, hub_points=8, limb_points=1)
+    kw = dict(random_state=0, labels=traj.labels_true, n_iter=60, resample_every=0, refine_sticks=False)
+    every = sf.fit(traj, method="em", **kw)
+    identified = sf.fit(traj, method="em", bic_rotations="identified", **kw)
+    a, b = every.info["stages"][0], identified.info["stages"][0]
+    assert a["objective"] == b["objective"] and a["labels"] == b["labels"] == traj.labels_true.tolist()
+    logN = np.log(2 * traj.n_points * traj.n_frames)
+    assert b["bic"] - a["bic"] == pytest.approx(4.5 * traj.n_frames * logN)
+    assert identified.params["bic_rotations"] == "identified"
+    with pytest.raises(ValueError, match="bic_rotations"):
+        sf.fit(traj, method="em", bic_rotations="some", **kw)
 
 
 def test_no_spare_to_remove_from_a_full_stick():

@@ -87,6 +87,12 @@ class EMSkeleton(StickEstimator):
         four other cameras of that take and its isometric view at 120 Hz lost their
         body tree (docs/em.md sections 7 and 11). Compare fits with different
         ``n_ends`` or ``hub_end`` by their BIC only with False.
+    bic_rotations : {"all", "identified"}
+        Which rotation angles BIC counts as parameters: 3 a frame for every stick
+        ("all"), or those the stick's anchors (its points and its endpoints in
+        joints) fix ("identified": 2 for a stick of two anchors, such as a 1-point
+        stick on one joint, which turns freely about the line through them; 0 for
+        one anchor). :func:`.structure.n_parameters`, docs/em.md section 7.
     endpoint_init : {"axis", "centroid"}
         Start a stick's endpoints along its principal axis (the first two at its
         ends), or all at its centroid (the paper).
@@ -372,7 +378,7 @@ class EMSkeleton(StickEstimator):
                  dissolve_scope: str = "all",
                  remerge: bool = True, split_dissolved: int = 4,
                  unpair: bool = True, bridge_points: int = 2, split_hubs: bool = True, reattach: bool = True,
-                 spare_end: bool = False, hub_end: bool = False, bic_free_ends: bool = True,
+                 spare_end: bool = False, hub_end: bool = False, bic_free_ends: bool = True, bic_rotations: str = "all",
                  max_trees: int | str | None = "auto", retry_mid_air: float | None = None,
                  merge_rank: str = "residual", align_mirrors: bool = True,
                  max_frames: int | None = 400, oversegment: float | None = 3.5, n_jobs: int | None = None,
@@ -417,6 +423,7 @@ class EMSkeleton(StickEstimator):
         self.spare_end = spare_end
         self.hub_end = hub_end
         self.bic_free_ends = bic_free_ends
+        self.bic_rotations = bic_rotations
         self.max_trees = max_trees
         self.retry_mid_air = retry_mid_air
         self.merge_rank = merge_rank
@@ -476,6 +483,8 @@ class EMSkeleton(StickEstimator):
                                                    and np.isfinite(self.retry_mid_air) and self.retry_mid_air > 0):
             raise ValueError(f"retry_mid_air must be None or a positive number of figure radii, "
                              f"got {self.retry_mid_air!r}")
+        if self.bic_rotations not in ("all", "identified"):
+            raise ValueError(f"bic_rotations must be 'all' or 'identified', got {self.bic_rotations!r}")
         if self.merge_rank not in ("objective", "residual"):
             raise ValueError(f"merge_rank must be 'objective' or 'residual', got {self.merge_rank!r}")
         for name in ("align_mirrors", "spare_end", "hub_end", "bic_free_ends"):
@@ -510,6 +519,7 @@ class EMSkeleton(StickEstimator):
                               bridge_points=int(self.bridge_points), split_hubs=bool(self.split_hubs),
                               reattach=bool(self.reattach), spare_end=bool(self.spare_end),
                               hub_end=bool(self.hub_end), bic_free_ends=bool(self.bic_free_ends),
+                              bic_rotations=str(self.bic_rotations),
                               max_trees=None if self.max_trees in (None, "auto") else int(self.max_trees),
                               endpoint_init=self.endpoint_init, n_ends=int(self.n_ends),
                               merge_rank=str(self.merge_rank), align_mirrors=bool(self.align_mirrors))
@@ -743,7 +753,7 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
         full, value, sweeps = run_em(full, obs_all, priors, settings, settings.n_iter, rng)
         info0["refit"] = {"search_frames": int(frames.size), "frames": int(obs_all.n_frames),
                           "objective": float(value),
-                          "bic": bic(full, obs_all, value, priors, settings.bic_free_ends),
+                          "bic": bic(full, obs_all, value, priors, settings.bic_free_ends, settings.bic_rotations),
                           "n_sweeps": int(sweeps), "labels_changed": int(np.sum(full.labels != sel.labels))}
         sel.state = full
         for s in stages:  # states on the searched frames only would not match the data any more

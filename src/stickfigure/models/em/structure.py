@@ -118,6 +118,7 @@ class EMSettings:
     spare_end: bool = False
     hub_end: bool = False
     bic_free_ends: bool = True
+    bic_rotations: str = "all"
     max_trees: int | None = None
     merge_rank: str = "residual"
     align_mirrors: bool = True
@@ -916,12 +917,22 @@ def apply_merge(st: StickState, cand: Candidate, priors: Priors, settings: EMSet
 
 
 # ----------------------------------------------------------------------- the search
-def n_parameters(st: StickState, obs: Observations) -> int:
+def n_parameters(st: StickState, obs: Observations, rotations: str = "all") -> int:
     """Free parameters of the articulated model with rigid joints (for BIC).
 
     Per stick and frame 3 rotation angles; per connected tree and frame D
     translation components (a joint fixes the child's translation); 3 local
     coordinates per point and per endpoint in a joint; the three precisions.
+
+    With ``rotations="identified"`` a stick's rotation angles are those its
+    *anchors* fix: its points and its endpoints in (rigid) joints, the places
+    where the stick meets an observation or another stick. Turning a stick
+    about the line through its only two anchors moves none of them: no
+    observation and no joint changes, only endpoints on no joint, which explain
+    nothing. So a stick with two anchors (a 1-point stick on one joint, a
+    2-point stick on none) has 2 identified angles a frame, one with a single
+    anchor (a 1-point stick on no joint) none, and one with three or more anchors
+    (in general not on one line) all 3. ``"all"`` counts 3 for every stick.
     """
     F, D = st.n_frames, st.n_dims
     # A loose joint (rigid_joints) does not tie its sticks' translations: it counts as none.
@@ -943,20 +954,30 @@ def n_parameters(st: StickState, obs: Observations) -> int:
                 parent[rb] = ra
                 trees -= 1
     in_joint = (st.vertex_counts() >= 2)[st.vertex_of] & rigid[st.vertex_of]
-    return int(3 * st.n_sticks * F + D * F * trees + 3 * obs.n_points + 3 * in_joint.sum() + 3)
+    if rotations == "all":
+        angles = 3 * st.n_sticks
+    elif rotations == "identified":
+        anchors = st.stick_sizes() + in_joint.reshape(st.n_sticks, E).sum(axis=1)
+        angles = int(np.sum(np.where(anchors >= 3, 3, np.where(anchors == 2, 2, 0))))
+    else:
+        raise ValueError(f"rotations must be 'all' or 'identified', got {rotations!r}")
+    return int(angles * F + D * F * trees + 3 * obs.n_points + 3 * in_joint.sum() + 3)
 
 
-def bic(st: StickState, obs: Observations, value: float, priors: Priors, free_ends: bool = True) -> float:
+def bic(st: StickState, obs: Observations, value: float, priors: Priors, free_ends: bool = True,
+        rotations: str = "all") -> float:
     """The selection criterion ``value - n_parameters / 2 log N`` (N observed coordinates).
 
     With ``free_ends=False`` the terms of the endpoints on no joint
     (:func:`model.free_endpoint_terms`) are taken out of ``value`` first: they explain
     no observation but add about ``D/2 log(tau_t / 2pi)`` a frame each, so a model
     with more sticks or more endpoints gains by them alone (docs/em.md section 7).
+    ``rotations``: which rotation angles count as parameters (:func:`n_parameters`).
     """
     if not free_ends:
         value = value - free_endpoint_terms(st, obs, priors)
-    return float(value - 0.5 * n_parameters(st, obs) * np.log(obs.mask.sum() * obs.n_dims))
+    k = n_parameters(st, obs, rotations)
+    return float(value - 0.5 * k * np.log(obs.mask.sum() * obs.n_dims))
 
 
 LOOSE_FACTOR = 10.0
@@ -1036,7 +1057,8 @@ class Stage:
 def _stage(st: StickState, obs: Observations, value: float, merged: tuple[int, int] | None, sweeps: int,
            ref: int, priors: Priors, settings: EMSettings) -> Stage:
     edges, _ = stick_edges(st)
-    return Stage(objective=value, bic=bic(st, obs, value, priors, settings.bic_free_ends), labels=st.labels.copy(),
+    value_bic = bic(st, obs, value, priors, settings.bic_free_ends, settings.bic_rotations)
+    return Stage(objective=value, bic=value_bic, labels=st.labels.copy(),
                  vertex_of=st.vertex_of.copy(), edges=edges, merged=merged, n_sweeps=sweeps,
                  ends_xy=st.mu_e[:, ref].copy(), joints_xy=st.mu_v[:, ref].copy())
 
@@ -1154,7 +1176,7 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
         raise ValueError(f"selection must be 'objective' or 'bic', got {selection!r}")
 
     def criterion(s: StickState, v: float) -> float:
-        return bic(s, obs, v, priors, settings.bic_free_ends) if selection == "bic" else v
+        return bic(s, obs, v, priors, settings.bic_free_ends, settings.bic_rotations) if selection == "bic" else v
 
     def keep_stage(state: StickState, value: float, sweeps: int, name: str, record: list) -> None:
         # A move after the search that changed something: its model is a stage of its own, selected
