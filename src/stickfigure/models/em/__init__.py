@@ -34,8 +34,8 @@ from .impute import centroid_concentration, frame_scales, refit_motions, rotatio
 from .initialise import fill_gaps, initial_state
 from .model import Observations, Priors, StickState, hub_endpoints, normalise
 from .refine import misfit_ratios
-from .structure import (EMSettings, Stage, bic, child_rng, extend_frames, learn_structure, run_em,
-                        joint_support, search_frames, stick_edges)
+from .structure import (EMSettings, Stage, child_rng, extend_frames, learn_structure, run_em,
+                        joint_support, search_frames, settings_bic, stick_edges)
 from .updates import mirror_alignment, stick_centroids
 
 __all__ = ["EMSkeleton", "fit_stages", "mid_air"]
@@ -753,7 +753,7 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
         full, value, sweeps = run_em(full, obs_all, priors, settings, settings.n_iter, rng)
         info0["refit"] = {"search_frames": int(frames.size), "frames": int(obs_all.n_frames),
                           "objective": float(value),
-                          "bic": bic(full, obs_all, value, priors, settings.bic_free_ends, settings.bic_rotations),
+                          "bic": settings_bic(full, obs_all, value, priors, settings),
                           "n_sweeps": int(sweeps), "labels_changed": int(np.sum(full.labels != sel.labels))}
         sel.state = full
         for s in stages:  # states on the searched frames only would not match the data any more

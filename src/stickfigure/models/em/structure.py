@@ -980,6 +980,11 @@ def bic(st: StickState, obs: Observations, value: float, priors: Priors, free_en
     return float(value - 0.5 * k * np.log(obs.mask.sum() * obs.n_dims))
 
 
+def settings_bic(st: StickState, obs: Observations, value: float, priors: Priors, settings: EMSettings) -> float:
+    """:func:`bic` as the fit counts it (``settings.bic_free_ends``, ``settings.bic_rotations``)."""
+    return bic(st, obs, value, priors, settings.bic_free_ends, settings.bic_rotations)
+
+
 LOOSE_FACTOR = 10.0
 
 
@@ -1057,8 +1062,7 @@ class Stage:
 def _stage(st: StickState, obs: Observations, value: float, merged: tuple[int, int] | None, sweeps: int,
            ref: int, priors: Priors, settings: EMSettings) -> Stage:
     edges, _ = stick_edges(st)
-    value_bic = bic(st, obs, value, priors, settings.bic_free_ends, settings.bic_rotations)
-    return Stage(objective=value, bic=value_bic, labels=st.labels.copy(),
+    return Stage(objective=value, bic=settings_bic(st, obs, value, priors, settings), labels=st.labels.copy(),
                  vertex_of=st.vertex_of.copy(), edges=edges, merged=merged, n_sweeps=sweeps,
                  ends_xy=st.mu_e[:, ref].copy(), joints_xy=st.mu_v[:, ref].copy())
 
@@ -1176,7 +1180,7 @@ def learn_structure(st: StickState, obs: Observations, priors: Priors, settings:
         raise ValueError(f"selection must be 'objective' or 'bic', got {selection!r}")
 
     def criterion(s: StickState, v: float) -> float:
-        return bic(s, obs, v, priors, settings.bic_free_ends, settings.bic_rotations) if selection == "bic" else v
+        return settings_bic(s, obs, v, priors, settings) if selection == "bic" else v
 
     def keep_stage(state: StickState, value: float, sweeps: int, name: str, record: list) -> None:
         # A move after the search that changed something: its model is a stage of its own, selected
