@@ -452,3 +452,33 @@ def test_a_cancellation_swallowed_by_a_finalizer_is_raised_again(monkeypatch):
     finally:
         forked._disarm()
         signal.signal(signal.SIGALRM, old)
+
+
+def _sleeps(seconds):
+    time.sleep(seconds)
+
+
+@linux
+def test_a_repeat_during_the_childs_cleanup_is_not_reported(monkeypatch, capfd):
+    # A repeat of the cancellation (SIGALRM) that landed in the child's cleanup before it
+    # disarmed the timer escaped the child, and multiprocessing printed "Process
+    # ForkProcess-1:" (seen once in a fit). Here the cleanup is made slow, so that repeats
+    # surely land in it.
+    from stickfigure.models.em import forked
+
+    real = forked._disarm
+
+    def slow_disarm():
+        time.sleep(0.3)
+        real()
+
+    monkeypatch.setattr(forked, "CANCEL_RETRY_S", 0.02)
+    monkeypatch.setattr(forked, "_disarm", slow_disarm)  # inherited by the forked child
+    with Speculative(lambda: _sleeps(30.0)) as job:
+        assert job.forked
+        time.sleep(0.3)
+        start = time.perf_counter()
+        job.cancel()
+    assert time.perf_counter() - start < 10.0
+    err = capfd.readouterr().err
+    assert "ForkProcess" not in err and "_Cancelled" not in err, err[-2000:]

@@ -61,13 +61,25 @@ class _Cancelled(BaseException):
 #: Seconds after which a cancellation the child has not acted on is raised again (:func:`_on_sigterm`).
 CANCEL_RETRY_S = 0.2
 
+#: Set by :func:`_child` once it has stopped its job (done or cancelled): from then on a
+#: cancellation, or a repeat of one, has nothing left to stop (:func:`_on_sigterm`).
+_finishing = False
+
 
 def _on_sigterm(signum: int, frame: Any) -> None:
     """Raise :class:`_Cancelled` now, and again every ``CANCEL_RETRY_S`` (SIGALRM) until :func:`_child`
     ends: Python swallows an exception raised inside a finalizer, a ``__del__`` or an after-fork
     hook ("Exception ignored in: <Finalize object, dead>", seen when the signal came while
     multiprocessing closed a pipe), and the child would run on as if never cancelled while its
-    parent waits to join it. (Timers are not inherited across fork; the parent is not affected.)"""
+    parent waits to join it. (Timers are not inherited across fork; the parent is not affected.)
+
+    Nothing is raised once the child is finishing (``_finishing``): a repeat that landed in
+    :func:`_child`'s cleanup before it disarmed the timer escaped ``_child``, and
+    multiprocessing printed "Process ForkProcess-1:" (its traceback cut short by the next
+    repeat) for a cancellation that had already been honoured.
+    """
+    if _finishing:
+        return
     signal.signal(signal.SIGALRM, _on_sigterm)
     signal.setitimer(signal.ITIMER_REAL, CANCEL_RETRY_S, CANCEL_RETRY_S)
     raise _Cancelled
@@ -112,6 +124,8 @@ def _child(conn: Any, reader: Any, job: Callable[[], Any], group: bool, gate: tu
     # in turn (a child may fork: the second start's trials); killed outright, they would run on.
     # SIGTERM arrives blocked (see _start); a cancellation that came before this point is
     # delivered at the unblocking, inside the ``try`` that handles it.
+    global _finishing
+    _finishing = False
     signal.signal(signal.SIGTERM, _on_sigterm)
     sys.unraisablehook = _quiet_unraisable
     try:
@@ -124,8 +138,11 @@ def _child(conn: Any, reader: Any, job: Callable[[], Any], group: bool, gate: tu
             out = ("error", traceback.format_exc())
         conn.send(out)
     except (_Cancelled, BrokenPipeError):  # nobody waits for the result any more
-        pass
+        # First, before any call: Python runs a signal's handler only at some instructions (a
+        # call, a backward jump, a function's start), so no repeat lands before this line.
+        _finishing = True
     finally:
+        _finishing = True
         _disarm()
         conn.close()
         _stop_children()
