@@ -454,10 +454,6 @@ def test_a_cancellation_swallowed_by_a_finalizer_is_raised_again(monkeypatch):
         signal.signal(signal.SIGALRM, old)
 
 
-def _sleeps(seconds):
-    time.sleep(seconds)
-
-
 @linux
 def test_a_repeat_during_the_childs_cleanup_is_not_reported(monkeypatch, capfd):
     # A repeat of the cancellation (SIGALRM) that landed in the child's cleanup before it
@@ -474,7 +470,7 @@ def test_a_repeat_during_the_childs_cleanup_is_not_reported(monkeypatch, capfd):
 
     monkeypatch.setattr(forked, "CANCEL_RETRY_S", 0.02)
     monkeypatch.setattr(forked, "_disarm", slow_disarm)  # inherited by the forked child
-    with Speculative(lambda: _sleeps(30.0)) as job:
+    with Speculative(lambda: time.sleep(30.0)) as job:
         assert job.forked
         time.sleep(0.3)
         start = time.perf_counter()

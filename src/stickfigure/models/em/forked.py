@@ -138,10 +138,11 @@ def _child(conn: Any, reader: Any, job: Callable[[], Any], group: bool, gate: tu
             out = ("error", traceback.format_exc())
         conn.send(out)
     except (_Cancelled, BrokenPipeError):  # nobody waits for the result any more
-        # First, before any call: Python runs a signal's handler only at some instructions (a
-        # call, a backward jump, a function's start), so no repeat lands before this line.
-        _finishing = True
+        pass
     finally:
+        # First, before any call: Python runs a signal's handler only at some instructions (a
+        # call, a backward jump, a function's start), and none comes between the job's end (or
+        # the ``except`` above) and this line, so no repeat lands before it.
         _finishing = True
         _disarm()
         conn.close()
