@@ -437,6 +437,25 @@ def test_bvh_cmu41_marker_set_rides_its_bones(tmp_path):
                                np.linalg.norm(x["RTHI"] - J["RightUpLeg"][0]), rtol=1e-9)
 
 
+def test_bvh_cmu41_pelvis_and_head_band_are_flat(tmp_path):
+    """Known answer (io/placement.py): mirrored marker pairs on one bone are coplanar, so the placed
+    pelvis and head band are flat sticks (third singular value 0), while the thorax's markers span 3D."""
+    _write_mb_bvh(tmp_path / "mb.bvh")
+    t = load(tmp_path / "mb.bvh", marker_set="cmu41")
+    x = dict(zip(t.names, t.xy[:, 0]))
+    joints = load(tmp_path / "mb.bvh")
+    J = dict(zip(joints.names, joints.xy[:, 0]))
+    thigh = np.linalg.norm(J["LeftLeg"] - J["LeftUpLeg"])
+
+    def third(names):
+        pts = np.stack([x[n] for n in names])
+        return np.linalg.svd(pts - pts.mean(axis=0), compute_uv=False)[2] / thigh
+
+    assert third(["LFWT", "RFWT", "LBWT", "RBWT"]) < 1e-9
+    assert third(["LFHD", "RFHD", "LBHD", "RBHD"]) < 1e-9
+    assert third(["C7", "CLAV", "STRN", "RBAC"]) > 0.01
+
+
 def test_bvh_marker_set_errors(tmp_path):
     _write_mb_bvh(tmp_path / "mb.bvh", F=2)
     with pytest.raises(ValueError, match="marker_set must be one of 'cmu41'"):

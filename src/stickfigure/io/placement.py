@@ -29,7 +29,12 @@ What differs from a recorded take: the markers are rigid on their bones (no
 skin or soft-tissue motion; a caller can add it) and the bones are the BVH
 fit's, so a segment the fit keeps rigid (CMU's pelvis, each spine link) is
 rigid here. The shoulder marker (``SHO``) sits on the collar bone, which turns
-against the thorax, as the acromion does.
+against the thorax, as the acromion does. The placement is mirror-symmetric, so
+the pelvis's four markers (two mirrored pairs, whose chords are parallel) and the
+head band's four are exactly coplanar. On the recorded CMU 85_02 take they are
+not quite: the third singular value of the centred markers is 2.5 mm for the
+pelvis and 3.7 mm for the head band (median over frames). An orthographic image
+of a flat stick fits its mirror-image pose as well (docs/em.md, sections 4 and 6).
 
 Joint names: CMU's own conversion (``LeftHip``, ``LeftKnee``, ``LeftCollar``,
 ``LeftShoulder``, ``LeftElbow``, ``lhand``: 131_01.bvh) and the MotionBuilder
