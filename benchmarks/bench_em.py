@@ -70,6 +70,14 @@ em-structure-cmu41-virtual
     the whole take at 120 Hz, isometric, side, front and 4 random views (12 with
     ``ctx.full``). The markers are rigid on their bones, so a failure here is not skin
     motion. A summary row counts the body trees.
+em-structure-cmu41-virtual-skin
+    The same take and views with the markers moved as skin moves them
+    (``synthetic.skin_motion``: a smooth random displacement of every coordinate over a
+    12-frame kernel, each segment's amplitude matched to how much the recorded CMU 85_02
+    take's markers of that segment move against each other, ``skin_sd_like``). Rigid
+    markers make every spine link's small turn exact, which a recorded take's skin motion
+    hides. One skin draw (two with ``ctx.full``); a summary row per draw counts the body
+    trees.
 em-structure-mocap-clips
     Clips, not whole takes: the CMU take and the placed 131_01 take each cut into three
     consecutive clips of a third of their frames (120 Hz; the HDM05 take, 202 frames, is
@@ -576,6 +584,64 @@ def case_structure_cmu41_virtual(ctx: Context) -> Iterator[dict[str, Any]]:
     yield _body_tree_summary("131_01.bvh, CMU 41 markers placed", f"{len(views)} views", rows)
 
 
+#: Smoothing of the skin motion added to the placed markers, in frames at 120 Hz: the recorded
+#: CMU 85_02 take's within-segment marker distances lose half their autocorrelation in 22-35
+#: frames, and a Gaussian kernel of s.d. T does so at 1.67 T.
+SKIN_TIMESCALE = 12.0
+
+
+def _front_waist_width(take: Trajectories) -> float:
+    names = list(take.names)
+    return float(np.nanmean(np.linalg.norm(take.xy[names.index("LFWT")] - take.xy[names.index("RFWT")], axis=-1)))
+
+
+def skin_sd_like(take: Trajectories, recorded: Trajectories) -> np.ndarray:
+    """Each marker's skin-motion s.d. per coordinate for ``take``, matched segment by segment to a
+    recorded take of the same marker set, shape (P,).
+
+    On ``recorded`` the distances between two markers of one body segment vary only by skin
+    motion; their median standard deviation over the segment's pairs, divided by sqrt(2) (two
+    markers moving independently by ``sd`` per coordinate make a distance vary by about
+    ``sd * sqrt(2)``), is the segment's ``sd``. It is scaled by the ratio of the two takes'
+    front waist widths (LFWT-RFWT). A segment with one marker (a hand) gets the median over
+    the segments.
+    """
+    from itertools import combinations
+
+    scale = _front_waist_width(take) / _front_waist_width(recorded)
+    per: dict[str, float] = {}
+    for k, part in enumerate(recorded.part_names):
+        idx = np.flatnonzero(recorded.labels_true == k)
+        sds = [float(np.nanstd(np.linalg.norm(recorded.xy[a] - recorded.xy[b], axis=-1)))
+               for a, b in combinations(idx, 2)]
+        if sds:
+            per[part] = float(np.median(sds)) / np.sqrt(2.0) * scale
+    fallback = float(np.median(list(per.values())))
+    return np.array([per.get(take.part_names[k], fallback) if k >= 0 else fallback for k in take.labels_true])
+
+
+def case_structure_cmu41_virtual_skin(ctx: Context) -> Iterator[dict[str, Any]]:
+    assert ctx.data_dir is not None
+    path = Path(ctx.data_dir) / "mocap" / "131_01.bvh"
+    recorded_path = Path(ctx.data_dir) / "mocap" / "85_02.c3d"
+    if not path.exists() or not recorded_path.exists():
+        return
+    take = sf.load(path, marker_set="cmu41")
+    sd = skin_sd_like(take, sf.load(recorded_path))
+    views: list[str | tuple[float, float]] = ["isometric", "side", "front"]
+    views += _random_views(ctx, 12 if ctx.full else 4)
+    for draw in range(2 if ctx.full else 1):
+        seed = 5 + draw + 10 * ctx.seed
+        skin = sf.synthetic.skin_motion(take, sd, seed=seed, timescale=SKIN_TIMESCALE)
+        name = (f"131_01.bvh, CMU 41 markers placed, skin motion as 85_02's ({sd.min():.3f}-{sd.max():.3f} units,"
+                f" draw {seed})")
+        rows = []
+        for view in views:
+            rows.append(_view_row(ctx, name + ",", skin, view))
+            yield rows[-1]
+        yield _body_tree_summary(name, f"{len(views)} views", rows)
+
+
 def articulation(X: np.ndarray) -> float:
     """How much a 3D clip moves other than as one rigid body, in figure radii.
 
@@ -739,6 +805,7 @@ CASES = [
     Case("em-structure-mocap-random-views", case_structure_mocap_random_views, needs_data=True),
     Case("em-structure-mocap-occluded", case_structure_mocap_occluded, needs_data=True),
     Case("em-structure-cmu41-virtual", case_structure_cmu41_virtual, needs_data=True),
+    Case("em-structure-cmu41-virtual-skin", case_structure_cmu41_virtual_skin, needs_data=True),
     Case("em-structure-mocap-clips", case_structure_mocap_clips, needs_data=True),
     Case("em-structure-mocap-gaps", case_structure_mocap_gaps, needs_data=True),
     Case("em-structure-mocap-perspective", case_structure_mocap_perspective, needs_data=True),

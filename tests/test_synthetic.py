@@ -126,6 +126,65 @@ def test_marker_gaps_name_bad_arguments():
         sf.synthetic.marker_gaps(traj.xy, 2, seed=0)
 
 
+def test_skin_motion_moves_every_coordinate_by_sd_and_keeps_the_truth():
+    traj = sf.synthetic.walker(n_frames=200, seed=0, project=False)
+    xy = traj.xy.copy()
+    xy[2, 50:60] = np.nan
+    traj = traj.with_xy(xy)
+    out = sf.synthetic.skin_motion(traj, 0.05, seed=3)
+    d = out.xy - traj.xy
+    ok = traj.observed
+    assert np.array_equal(out.observed, ok)  # missing stays missing
+    full = ok.all(axis=1)
+    # Each coordinate's displacement has s.d. sd over the frames (exactly, where the point is always seen).
+    np.testing.assert_allclose(d[full].std(axis=1), 0.05, rtol=1e-9)
+    assert np.array_equal(out.labels_true, traj.labels_true)
+    assert np.array_equal(out.edges_true, traj.edges_true)
+    np.testing.assert_array_equal(out.joints_true, traj.joints_true)  # the bones do not move
+    assert out.meta["skin_motion"] == {"sd": 0.05, "timescale": 12.0}
+    again = sf.synthetic.skin_motion(traj, 0.05, seed=3)
+    np.testing.assert_array_equal(again.xy, out.xy)  # the same seed, the same motion
+    assert not np.allclose(sf.synthetic.skin_motion(traj, 0.05, seed=4).xy[full], out.xy[full])
+    np.testing.assert_array_equal(sf.synthetic.skin_motion(traj, 0.0, seed=3).xy, traj.xy)
+    # Each point its own amplitude: the same draw, scaled point by point.
+    sd = np.linspace(0.0, 0.1, traj.n_points)
+    each = sf.synthetic.skin_motion(traj, sd, seed=3)
+    np.testing.assert_allclose(each.xy - traj.xy, d * (sd / 0.05)[:, None, None], atol=1e-12)
+    assert each.meta["skin_motion"]["sd"] == pytest.approx(sd.tolist())
+
+
+@pytest.mark.parametrize("timescale", [4.0, 12.0])
+def test_skin_motion_is_smooth_on_its_timescale(timescale):
+    # A Gaussian kernel of s.d. T makes an autocorrelation exp(-lag^2 / 4T^2): one half at 1.67 T.
+    traj = sf.Trajectories(xy=np.zeros((3, 20000, 2)))
+    d = sf.synthetic.skin_motion(traj, 1.0, seed=0, timescale=timescale).xy
+    x = d - d.mean(axis=1, keepdims=True)
+
+    def autocorrelation(lag):
+        return float(np.mean(x[:, lag:] * x[:, :-lag]) / np.mean(x * x))
+
+    half = 2.0 * np.sqrt(np.log(2.0)) * timescale
+    assert autocorrelation(int(round(half))) == pytest.approx(0.5, abs=0.08)
+    assert autocorrelation(1) > 0.95
+    assert autocorrelation(int(round(4 * timescale))) < 0.1
+
+
+def test_skin_motion_names_bad_arguments():
+    traj = sf.synthetic.walker(n_frames=30, seed=0)
+    with pytest.raises(ValueError, match="sd"):
+        sf.synthetic.skin_motion(traj, -1.0)
+    with pytest.raises(ValueError, match="shape"):
+        sf.synthetic.skin_motion(traj, np.ones(traj.n_points + 1))
+    with pytest.raises(ValueError, match="sd"):
+        sf.synthetic.skin_motion(traj, np.full(traj.n_points, np.nan))
+    with pytest.raises(ValueError, match="timescale"):
+        sf.synthetic.skin_motion(traj, 1.0, timescale=0)
+    with pytest.raises(ValueError, match="2 frames"):
+        sf.synthetic.skin_motion(sf.Trajectories(xy=np.zeros((3, 1, 2))), 1.0)
+    with pytest.raises(TypeError, match="Trajectories"):
+        sf.synthetic.skin_motion(traj.xy, 1.0)
+
+
 @pytest.mark.parametrize("n_limbs", [1, 4, 6])
 def test_star_ground_truth(n_limbs):
     t = sf.synthetic.star(n_limbs=n_limbs, frames=40, noise=0.0, seed=2, hub_points=8, limb_points=5)
