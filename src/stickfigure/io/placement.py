@@ -30,8 +30,9 @@ skin or soft-tissue motion; :func:`stickfigure.synthetic.skin_motion` adds it)
 and the bones are the BVH fit's, so a segment the fit keeps rigid (CMU's pelvis,
 each spine link) is rigid here, and ``T10``, on the lower spine link, moves
 against the exactly rigid upper thorax where on a recorded take it moves with it
-as much as the thorax markers move with each other. The shoulder marker (``SHO``) sits on the collar bone, which turns
-against the thorax, as the acromion does. The placement is mirror-symmetric, so
+as much as the thorax markers move with each other. The shoulder marker
+(``SHO``) sits on the collar bone, which turns against the thorax, as the
+acromion does. The placement is mirror-symmetric, so
 the pelvis's four markers (two mirrored pairs, whose chords are parallel) and the
 head band's four are exactly coplanar. On the recorded CMU 85_02 take they are
 not quite: the third singular value of the centred markers is 2.5 mm for the
