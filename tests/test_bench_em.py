@@ -80,4 +80,3 @@ def test_skin_sd_like_recovers_each_segments_skin_motion_and_scales_by_the_waist
     # A take twice as wide at the waist gets twice the motion.
     big = rec.with_xy(rec.xy * 2.0)
     np.testing.assert_allclose(skin_sd_like(big, rec), 2.0 * sd, rtol=1e-6)
-
