@@ -56,7 +56,9 @@ em-structure-mocap-random-views
     The same check from cameras nobody chose: 4 views of each whole take (12 with
     ``ctx.full``), azimuth uniform, elevation 0-35 degrees, drawn from the seed; a
     summary row per take counts the views whose result is a body tree (every stick
-    coherent, every edge anatomical, one tree).
+    coherent, every edge anatomical, one tree). ``--seed 1000``, ``2000`` and ``3000``
+    chose em's structure rules (sessions 5-29); ``--seed 0``, ``4000`` and ``5000`` were
+    held out from them (docs/em.md section 11, session 30). Judge a change on both.
 em-structure-mocap-occluded
     The named views of em-structure-mocap-views with the paper's occlusion on every
     frame (``synthetic.occlude``: a sweeping bar plus 5% at random, about 12% of the
