@@ -72,10 +72,12 @@ class EMSkeleton(StickEstimator):
         One endpoint more for the sticks with the most points, which alone may use
         it (``StickState.joint_capacity``): a torso on four joints (neck, shoulders,
         lumbar) or a body with four limbs, while every other stick keeps
-        ``n_ends``. Default False: on the recorded CMU take it gave fewer body trees
-        over random cameras, though more on a walk with rigid markers (docs/em.md
-        sections 6 and 11). Turn it on for a figure whose largest part holds more
-        joints than ``n_ends`` (:func:`stickfigure.synthetic.star`).
+        ``n_ends``. Turn it on for a figure whose largest part holds more joints
+        than ``n_ends`` (:func:`stickfigure.synthetic.star`) and for human motion
+        capture: on CMU 85_02 cameras held out from development it gave 31 body trees
+        of 36 against the default's 21. Default False: it gave fewer (26 against 34)
+        on the development cameras that chose the other rules, and a new default
+        needs every em benchmark measured again (docs/em.md sections 6 and 11).
     bic_free_ends : bool
         Whether BIC counts the objective's terms of the endpoints on no joint (True,
         the objective as it is) or leaves them out (False,
