@@ -8,7 +8,8 @@ em-structure-random3d
     misclassification, edge F1, exact-structure rate (mean over figures).
 em-structure-star
     Figures whose hub holds more joints than a stick has endpoints
-    (``synthetic.star``: 4-5 limbs), end to end: the default, ``hub_end`` and
+    (``synthetic.star``: 4-5 limbs), end to end: the default (``hub_end``), three
+    endpoints a stick (``hub_end=False``, the default before session 32) and
     ``spare_end`` with ``max_trees=1`` (ARI, edge F1, exact-structure rate).
 em-structure-low-noise
     The same random figures without noise and with 0.1 % noise (mean ARI, edge F1,
@@ -192,14 +193,14 @@ def case_structure_random3d(ctx: Context) -> Iterator[dict[str, Any]]:
            "notes": f"mean of {len(extra)} figures (3-7 sticks, 90-180 frames, 5-9 pts/stick, 1% noise)"}
 
 
-STAR_SETTINGS = {"default": {}, "hub_end": {"hub_end": True}, "spare_end, max_trees=1": {"spare_end": True,
-                                                                                        "max_trees": 1}}
+STAR_SETTINGS = {"default (hub_end)": {}, "hub_end=False": {"hub_end": False},
+                 "spare_end, hub_end=False, max_trees=1": {"spare_end": True, "hub_end": False, "max_trees": 1}}
 
 
 def case_structure_star(ctx: Context) -> Iterator[dict[str, Any]]:
     # A hub on more joints than a stick has endpoints (synthetic.star: 4 or 5 limbs, the hub
-    # with the most points), which random_figure never makes: end to end, the default against
-    # the two ways em gives a stick a further endpoint.
+    # with the most points), which random_figure never makes: end to end, the default (one more
+    # endpoint for the hub) against three endpoints a stick and the spare endpoint.
     figures = []
     for k in range(12 if ctx.full else 4):
         seed = ctx.seed * 1000 + k

@@ -235,9 +235,11 @@ def test_the_spare_endpoint_lets_a_full_hub_take_back_its_limb():
     # stick it moves limb 2 to the hub, and the spare endpoints stay (the hub is on four).
     traj = sf.synthetic.star(n_limbs=4, frames=120, seed=2)
     truth = _edges(traj.edges_true)
-    plain = sf.fit(traj, method="em", random_state=0, labels=traj.labels_true, max_trees=1, spare_end=False)
+    plain = sf.fit(traj, method="em", random_state=0, labels=traj.labels_true, max_trees=1, spare_end=False,
+                   hub_end=False)
     assert _edges(plain.edges) != truth and (2, 3) in _edges(plain.edges)
-    spare = sf.fit(traj, method="em", random_state=0, labels=traj.labels_true, max_trees=1, spare_end=True)
+    spare = sf.fit(traj, method="em", random_state=0, labels=traj.labels_true, max_trees=1, spare_end=True,
+                   hub_end=False)
     assert _edges(spare.edges) == truth
     moves = [m for s in spare.info["stages"] for m in s["reattached"]]
     assert moves == [{"sticks": [0, 2], "was": [2, 3]}]

@@ -72,12 +72,14 @@ class EMSkeleton(StickEstimator):
         One endpoint more for the sticks with the most points, which alone may use
         it (``StickState.joint_capacity``): a torso on four joints (neck, shoulders,
         lumbar) or a body with four limbs, while every other stick keeps
-        ``n_ends``. Turn it on for a figure whose largest part holds more joints
-        than ``n_ends`` (:func:`stickfigure.synthetic.star`) and for human motion
-        capture: on CMU 85_02 cameras held out from development it gave 31 body trees
-        of 36 against the default's 21. Default False: it gave fewer (26 against 34)
-        on the development cameras that chose the other rules, and a new default
-        needs every em benchmark measured again (docs/em.md sections 6 and 11).
+        ``n_ends``: for a figure whose largest part holds more joints than
+        ``n_ends`` (:func:`stickfigure.synthetic.star`) and for human motion capture
+        (a thorax on four joints). Default True since session 32: on CMU 85_02
+        cameras held out from development it gave 31 body trees of 36 against 21
+        with False, fitted on one machine; it gave fewer (26 against 34) on the
+        development cameras that chose the other rules, and lost the body tree of
+        the take's isometric view (docs/em.md sections 6 and 11). False gives every
+        stick ``n_ends`` joints at most (the rules as they were before).
     bic_free_ends : bool
         Whether BIC counts the objective's terms of the endpoints on no joint (True,
         the objective as it is) or leaves them out (False,
@@ -380,7 +382,7 @@ class EMSkeleton(StickEstimator):
                  dissolve_scope: str = "all",
                  remerge: bool = True, split_dissolved: int = 4,
                  unpair: bool = True, bridge_points: int = 2, split_hubs: bool = True, reattach: bool = True,
-                 spare_end: bool = False, hub_end: bool = False, bic_free_ends: bool = True, bic_rotations: str = "all",
+                 spare_end: bool = False, hub_end: bool = True, bic_free_ends: bool = True, bic_rotations: str = "all",
                  max_trees: int | str | None = "auto", retry_mid_air: float | None = None,
                  merge_rank: str = "residual", align_mirrors: bool = True,
                  max_frames: int | None = 400, oversegment: float | None = 3.5, n_jobs: int | None = None,

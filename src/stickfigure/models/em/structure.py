@@ -116,7 +116,7 @@ class EMSettings:
     split_hubs: bool = True
     reattach: bool = True
     spare_end: bool = False
-    hub_end: bool = False
+    hub_end: bool = True
     bic_free_ends: bool = True
     bic_rotations: str = "all"
     max_trees: int | None = None
