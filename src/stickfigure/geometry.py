@@ -41,6 +41,8 @@ __all__ = [
     "min_eig_sym3",
     "similarity_fit_2d",
     "low_rank_complete",
+    "fill_gaps",
+    "smooth_low_rank_complete",
     "estimate_rank",
     "local_subspace_affinity",
     "measurement_matrix",
@@ -444,6 +446,217 @@ def low_rank_complete(xy: Any, rank: int, **kwargs: Any) -> np.ndarray:
     out = fac.predict()
     out[obs] = xy[obs]
     return out
+
+
+def fill_gaps(xy: Any, *, ends: bool = True) -> np.ndarray:
+    """Trajectories with their gaps filled by linear interpolation in time, shape (P, F, D).
+
+    Interior gaps (between two observations of a point) are interpolated; with
+    ``ends`` the frames before the first and after the last observation hold
+    the nearest observed position, else they stay NaN. Points never observed
+    stay NaN. A start for methods that need complete data (the motions of
+    smooth trajectories change little over a short gap), never a substitute for
+    the observations in a likelihood.
+    """
+    out = np.array(xy, dtype=float, copy=True)
+    P, F, D = out.shape
+    f = np.arange(F)
+    for p in range(P):
+        o = ~np.isnan(out[p, :, 0])
+        if o.all() or not o.any():
+            continue
+        fo = np.flatnonzero(o)
+        gap = np.flatnonzero(~o)
+        if not ends:
+            gap = gap[(gap > fo[0]) & (gap < fo[-1])]
+        for d in range(D):
+            out[p, gap, d] = np.interp(f[gap], fo, out[p, fo, d])
+    return out
+
+
+def _second_difference_bands(F: int) -> list[np.ndarray]:
+    """Upper diagonals 0, 1, 2 of ``D2^T D2`` (F, F), ``D2`` the (F-2, F) second-difference operator."""
+    import scipy.sparse
+
+    if F < 3:
+        return [np.zeros(F), np.zeros(max(F - 1, 0)), np.zeros(max(F - 2, 0))]
+    D2 = scipy.sparse.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(F - 2, F))
+    K = (D2.T @ D2).tocsr()
+    return [np.asarray(K.diagonal(k)) for k in range(3)]
+
+
+def _smooth_factor_als(X: np.ndarray, W: np.ndarray, U: np.ndarray, V: np.ndarray, weights: np.ndarray,
+                       smoothness: float, ridge: float, n_iter: int, n_coords: int) -> tuple[np.ndarray, np.ndarray]:
+    """Alternating least squares of :func:`smooth_low_rank_complete`.
+
+    ``X``, ``W`` (D*F, P): values (0 where missing) and the observed mask, rows
+    coordinate-major; ``U`` (D*F, r), ``V`` (P, r) the start; ``weights`` (r,).
+    """
+    DF, P = X.shape
+    r = U.shape[1]
+    F = DF // n_coords
+    Wf = W.astype(float)
+    scale = max(float(np.mean(X[W] ** 2)), 1e-300)
+    eps = 1e-9 * scale
+    bands = _second_difference_bands(F)
+    u, N = 2 * r, F * r
+    smooth_ab = np.zeros((u + 1, N))
+    # The penalty's bands, unknowns ordered frame-major (index f*r + a).
+    for k in range(3):
+        smooth_ab[u - k * r].reshape(F, r)[k:] = smoothness * bands[k][:, None] * weights
+    smooth_ab[u] += eps
+    for _ in range(n_iter):
+        # V-step: one small ridge solve per point, then V orthonormalised (U V^T unchanged),
+        # so that the penalty on U is a penalty on the trajectories' second differences.
+        G = (Wf.T @ (U[:, :, None] * U[:, None, :]).reshape(DF, r * r)).reshape(P, r, r)
+        G += (eps + ridge * np.trace(G, axis1=1, axis2=2).mean() / r) * np.eye(r)
+        V = np.linalg.solve(G, (X.T @ U)[..., None])[..., 0]
+        Q, Rq = np.linalg.qr(V)
+        V, U = Q, U @ Rq.T
+        VV = (V[:, :, None] * V[:, None, :]).reshape(P, r * r)
+        # U-step: per coordinate, one banded system over all frames (blocks r x r, coupled by D2).
+        for c in range(n_coords):
+            rows = slice(c * F, (c + 1) * F)
+            H = (Wf[rows] @ VV).reshape(F, r, r)
+            ab = smooth_ab.copy()
+            for d in range(r):
+                a = np.arange(r - d)
+                ab[u - d].reshape(F, r)[:, a + d] += H[:, a, a + d]
+            try:
+                U[rows] = solveh_banded(ab, (X[rows] @ V).ravel(), lower=False).reshape(F, r)
+            except np.linalg.LinAlgError:
+                ab[u] += 1e-6 * scale
+                U[rows] = solveh_banded(ab, (X[rows] @ V).ravel(), lower=False).reshape(F, r)
+    return U, V
+
+
+def _smooth_low_rank_fit(xy: np.ndarray, rank: int, smoothness: float, ridge: float, n_iter: int) -> np.ndarray:
+    """One fit of :func:`smooth_low_rank_complete` with fixed settings; points never seen stay NaN."""
+    P, F, D = xy.shape
+    X = np.transpose(xy, (2, 1, 0)).reshape(D * F, P)
+    W = ~np.isnan(X)
+    start = np.transpose(fill_gaps(xy), (2, 1, 0)).reshape(D * F, P)
+    Uf, s, Vt = np.linalg.svd(start, full_matrices=False)
+    r = int(min(rank, s.size))
+    U, V = Uf[:, :r] * s[:r], Vt[:r].T.copy()
+    weights = s[0] / np.maximum(s[:r], 1e-12 * max(s[0], 1e-300))
+    U, V = _smooth_factor_als(np.where(W, X, 0.0), W, U, V, weights, smoothness, ridge, n_iter, D)
+    out = np.where(W, X, U @ V.T)
+    return np.transpose(out.reshape(D, F, P), (2, 1, 0))
+
+
+def smooth_low_rank_complete(
+    xy: Any,
+    *,
+    rank: int = 16,
+    smoothness: float | None = None,
+    smoothness_grid: tuple[float, ...] = (0.1, 1.0, 10.0),
+    ridge: float = 0.01,
+    n_iter: int = 20,
+    holdout: float = 0.1,
+    random_state: Any = 0,
+    return_info: bool = False,
+) -> np.ndarray | tuple[np.ndarray, dict[str, Any]]:
+    """Fill the NaN entries of (P, F, D) trajectories by a factorisation whose frame factors are smooth in time.
+
+    For sparse observations (most entries missing at random) neither tool alone
+    works: linear interpolation in time (:func:`fill_gaps`) bends every
+    trajectory across its gaps independently, and a low-rank factorisation
+    (:func:`low_rank_complete`) is undetermined in a frame that shows fewer
+    points than its rank. Together they are: with the measurement matrix ``W``
+    (D*F, P) written ``U V^T``, ``V`` (P, r) with orthonormal columns, minimise ::
+
+        sum_observed (w_fp - u_f . v_p)^2 + lambda sum_a c_a |D2 u_a|^2 + ridge terms
+
+    ``D2`` the second difference over frames, so ``sum_a |D2 u_a|^2`` is
+    ``|D2 U V^T|^2``, the roughness of all trajectories; ``c_a = s_1 / s_a``
+    (singular values of the interpolated start) smooths the weak components
+    more than the strong ones, which the data pin down; a ridge of ``ridge``
+    times the mean diagonal keeps the coefficients of a point seen in few frames
+    bounded. Every step is a linear least-squares problem: per point ``r x r``
+    solves, per coordinate one banded system over all frames
+    (``scipy.linalg.solveh_banded``, bandwidth ``2r``), so nothing loops over frames.
+
+    The rank needs no tuning: with the ridge the error falls as the rank grows
+    and then flattens (docs/em.md section 5). ``lambda`` is chosen, unless given,
+    by the error on a random ``holdout`` share of the observed entries.
+
+    On 16 random 4-stick figures with 75 % of entries withheld (84 frames) the
+    RMS error of the filled entries was 0.017 against 0.043 for linear
+    interpolation (noise 0.01; lower on 16 of 16), and Affinity Propagation on
+    the completed trajectories gave a mean ARI of 0.94 against 0.62 (exact on 11
+    of 16 against 2). Without the ridge the fit diverged on some figures from
+    rank 12 on; with uniform weights ``c_a = 1`` (rank 27, lambda 1) the ARI was 0.85.
+
+    Parameters
+    ----------
+    xy : array_like, shape (P, F, D)
+        NaN where missing.
+    rank : int
+        Upper bound of the factorisation's rank (at most ``P`` and ``D*F``).
+    smoothness : float, optional
+        ``lambda``; by default chosen from ``smoothness_grid`` by held-out error.
+    ridge : float
+        Ridge on the point coefficients, relative to their mean Gram diagonal.
+    n_iter : int
+        Alternating least-squares sweeps (each fit starts from :func:`fill_gaps`'s SVD).
+    holdout : float
+        Share of the observed entries held out to choose ``lambda``.
+    random_state : None, int or Generator
+        Chooses the held-out entries.
+    return_info : bool
+        Also return ``{"rank", "smoothness", "holdout_rmse", "interpolation_rmse"}``: the
+        held-out RMS error of each ``lambda`` tried and of :func:`fill_gaps` on the same
+        entries (None when ``smoothness`` is given), so a caller can take the better fill.
+
+    Returns
+    -------
+    ndarray, shape (P, F, D)
+        Observed entries unchanged; points never observed stay NaN.
+    """
+    from ._threads import blas_threads
+
+    with blas_threads():  # many small solves: more BLAS threads only add synchronisation (20x slower on 2 cores)
+        return _smooth_low_rank_complete(xy, rank, smoothness, smoothness_grid, ridge, n_iter, holdout,
+                                         random_state, return_info)
+
+
+def _smooth_low_rank_complete(xy: Any, rank: int, smoothness: float | None, smoothness_grid: tuple[float, ...],
+                              ridge: float, n_iter: int, holdout: float, random_state: Any, return_info: bool
+                              ) -> np.ndarray | tuple[np.ndarray, dict[str, Any]]:
+    xy = _check_xy(xy)
+    rank = _check_rank(rank)
+    P, F, D = xy.shape
+    obs = ~np.isnan(xy[..., 0])
+    out = xy.copy()
+    seen = obs.any(axis=1)
+    info: dict[str, Any] = {"rank": 0, "smoothness": smoothness, "holdout_rmse": {}, "interpolation_rmse": None}
+    if obs.all() or seen.sum() < 2:
+        return (out, info) if return_info else out
+    sub, so = xy[seen], obs[seen]
+    r = int(min(rank, sub.shape[0] - 1 if sub.shape[0] > 1 else 1, D * F))
+    info["rank"] = r
+    lam = smoothness
+    if lam is None:
+        rng = check_random_state(random_state)
+        held = so & (rng.random(so.shape) < holdout)
+        held[(so & ~held).sum(axis=1) < 2] = False  # every point keeps two observations
+        if held.any():
+            train = np.where(held[..., None], np.nan, sub)
+            errs = {}
+            for cand in smoothness_grid:
+                pred = _smooth_low_rank_fit(train, r, float(cand), ridge, n_iter)
+                errs[float(cand)] = float(np.sqrt(np.mean((pred - sub)[held] ** 2)))
+            lam = min(errs, key=errs.get)
+            info["holdout_rmse"] = errs
+            # The same entries filled by linear interpolation in time, for callers that choose.
+            lin = fill_gaps(train)
+            info["interpolation_rmse"] = float(np.sqrt(np.mean((lin - sub)[held] ** 2)))
+        else:
+            lam = 1.0
+    info["smoothness"] = float(lam)
+    out[seen] = _smooth_low_rank_fit(sub, r, float(lam), ridge, n_iter)
+    return (out, info) if return_info else out
 
 
 # ------------------------------------------------------------- metric upgrade

@@ -30,36 +30,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...geometry import affine_factorization, metric_upgrade
+from ...geometry import affine_factorization, fill_gaps, metric_upgrade
 from .model import Ghosts, Observations, Priors, StickState, chain_degree
 
 __all__ = ["stick_sfm", "initial_state", "end_positions"]
-
-
-def fill_gaps(xy: np.ndarray, *, ends: bool = True) -> np.ndarray:
-    """Trajectories with their gaps filled by linear interpolation in time, shape (P, F, D).
-
-    Interior gaps (between two observations of a point) are interpolated; with
-    ``ends`` the frames before the first and after the last observation hold
-    the nearest observed position, else they stay NaN. Points never observed
-    stay NaN. A start for methods that need complete data (the motions of
-    smooth trajectories change little over a short gap), never a substitute for
-    the observations in the likelihood.
-    """
-    out = np.array(xy, dtype=float, copy=True)
-    P, F, D = out.shape
-    f = np.arange(F)
-    for p in range(P):
-        o = ~np.isnan(out[p, :, 0])
-        if o.all() or not o.any():
-            continue
-        fo = np.flatnonzero(o)
-        gap = np.flatnonzero(~o)
-        if not ends:
-            gap = gap[(gap > fo[0]) & (gap < fo[-1])]
-        for d in range(D):
-            out[p, gap, d] = np.interp(f[gap], fo, out[p, fo, d])
-    return out
 
 
 def interpolate_rotations(R: np.ndarray, good: np.ndarray) -> np.ndarray:
