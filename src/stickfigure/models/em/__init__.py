@@ -26,12 +26,13 @@ import numpy as np
 
 from ..._threads import available_cpus
 from ..._validation import check_labels, check_positive
+from ...geometry import fill_gaps, smooth_low_rank_complete
 from ...skeleton import Skeleton
 from ...trajectories import Trajectories
 from ..base import StickEstimator, register
 from .forked import Speculative
 from .impute import centroid_concentration, frame_scales, refit_motions, rotation_concentration, start_state
-from .initialise import fill_gaps, initial_state
+from .initialise import initial_state
 from .model import Observations, Priors, StickState, hub_endpoints, normalise
 from .refine import misfit_ratios
 from .structure import (EMSettings, Stage, child_rng, extend_frames, learn_structure, run_em,
@@ -791,16 +792,21 @@ def _initial_groups(traj: Trajectories, max_segments: int, rng: np.random.Genera
     """Affinity Propagation groups; with missing data also from the gap-interpolated trajectories.
 
     The rigid-subspace affinity completes gaps by a low-rank fit, which with sparse
-    observations (75% withheld) merges the whole scene into one or two groups; with
-    every point's gaps filled by linear interpolation in time (held at the nearest
-    observation before the first and after the last, :func:`initialise.fill_gaps`) the
-    groups come out right far more often, but over a
-    long gap (an occluder) interpolation bends the trajectory and can mix parts. So
-    where at least half of the entries are observed both groupings are made and the
-    one with the lower BIC of per-group affine fits to the observed entries is kept
-    (with sparse data those fits are undetermined; the interpolated grouping is used).
-    The EM itself sees the observations only. ``n_segments`` fixes the count
-    instead of estimating it.
+    observations (75% withheld) merges the whole scene into one or two groups.
+    Where fewer than half of the entries are observed the trajectories are completed
+    by a factorisation smooth in time (:func:`geometry.smooth_low_rank_complete`):
+    on 16 random 4-stick figures with 75 % withheld the groups' mean ARI was 0.94
+    against 0.62 with linear interpolation in time (docs/em.md section 5). Where
+    interpolation predicts the completion's held-out entries better (motion capture
+    at 120 Hz: short gaps, and more independent markers than the factorisation's
+    rank), the interpolated trajectories are grouped instead. Where at
+    least half are observed, every point's gaps are filled by linear interpolation
+    (held at the nearest observation before the first and after the last,
+    :func:`geometry.fill_gaps`); over a long gap (an occluder) interpolation bends
+    the trajectory and can mix parts, so both that grouping and the one on the
+    data as given are made and the one with the lower BIC of per-group affine fits
+    to the observed entries is kept. The EM itself sees the observations only.
+    ``n_segments`` fixes the count instead of estimating it.
     """
     from ...segmentation import affinity_propagation_segments
 
@@ -808,12 +814,21 @@ def _initial_groups(traj: Trajectories, max_segments: int, rng: np.random.Genera
         return affinity_propagation_segments(traj.xy, max_segments=max_segments, n_segments=n_segments,
                                              random_state=rng, return_info=True)
     seed = int(rng.integers(2**31 - 1))
+    if traj.observed.mean() < 0.5:
+        filled, fill_info = smooth_low_rank_complete(traj.xy, random_state=seed, return_info=True)
+        held = fill_info["holdout_rmse"]
+        lin = fill_info["interpolation_rmse"]
+        if lin is not None and held and lin < min(held.values()):
+            filled, how = fill_gaps(traj.xy), "gaps interpolated (lower held-out error)"
+        else:
+            how = "smooth low-rank completion"
+        lab, info = affinity_propagation_segments(filled, max_segments=max_segments, n_segments=n_segments,
+                                                  random_state=seed, return_info=True)
+        return lab, {**info, "input": how, "completion": fill_info}
     filled = fill_gaps(traj.xy)
     lab_f, info_f = affinity_propagation_segments(filled, max_segments=max_segments, n_segments=n_segments,
                                                   random_state=seed, return_info=True)
     info_f = {**info_f, "input": "gaps interpolated"}
-    if traj.observed.mean() < 0.5:
-        return lab_f, info_f
     lab_r, info_r = affinity_propagation_segments(traj.xy, max_segments=max_segments, n_segments=n_segments,
                                                   random_state=seed, return_info=True)
     if np.array_equal(lab_r, lab_f):
