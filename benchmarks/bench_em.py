@@ -11,6 +11,12 @@ em-structure-star
     (``synthetic.star``: 4-5 limbs), end to end: the default (``hub_end``), three
     endpoints a stick (``hub_end=False``, the default before session 32) and
     ``spare_end`` with ``max_trees=1`` (ARI, edge F1, exact-structure rate).
+em-structure-withheld
+    The paper's structural robustness claim ("correctly recover the structure ...
+    when up to 75% of the training observations were randomly withheld"): the
+    random figures of em-structure-random3d with 75 % of their entries withheld at
+    random (every point kept in at least two frames), end to end: ARI, edge F1,
+    exact-structure rate.
 em-structure-low-noise
     The same random figures without noise and with 0.1 % noise (mean ARI, edge F1,
     and how many sticks more than parts each one got).
@@ -217,6 +223,17 @@ def case_structure_star(ctx: Context) -> Iterator[dict[str, Any]]:
                **_mean(rows, ("ari", "edge_f1", "exact", "time_s", "time_ratio")),
                "notes": f"mean of {len(rows)} figures (a hub of 8-12 points with 4-5 limbs of 4-7, "
                         "90-180 frames, 1% noise, random views)"}
+
+
+def case_structure_withheld(ctx: Context) -> Iterator[dict[str, Any]]:
+    rows = []
+    for seed, traj in _random_figures(ctx):
+        sparse = _withhold(traj, 0.75, seed)
+        skel, timing = ctx.measure(lambda: sf.fit(sparse, method="em", random_state=seed))
+        rows.append({**_score(skel, traj), **timing})
+    yield {"dataset": "random_figure 3D, 75% withheld", "method": "em",
+           **_mean(rows, ("ari", "misclassification", "edge_f1", "exact", "time_s", "time_ratio", "peak_mb")),
+           "notes": f"mean of {len(rows)} figures (those of em-structure-random3d), 75% of entries withheld at random"}
 
 
 def case_structure_low_noise(ctx: Context) -> Iterator[dict[str, Any]]:
@@ -799,6 +816,7 @@ def case_memory(ctx: Context) -> Iterator[dict[str, Any]]:
 CASES = [
     Case("em-structure-random3d", case_structure_random3d),
     Case("em-structure-star", case_structure_star),
+    Case("em-structure-withheld", case_structure_withheld),
     Case("em-structure-low-noise", case_structure_low_noise),
     Case("em-structure-virtual-markers", case_structure_virtual_markers, needs_data=True),
     Case("em-imputation-synthetic", case_imputation_synthetic),
