@@ -201,6 +201,10 @@ def test_smooth_low_rank_completion_edge_cases():
         g.smooth_low_rank_complete(xy[0])
     with pytest.raises(ValueError, match="rank"):
         g.smooth_low_rank_complete(xy, rank=0)
+    with pytest.raises(ValueError, match="holdout"):
+        g.smooth_low_rank_complete(xy, holdout=1.0)
+    with pytest.raises(ValueError, match="smoothness"):
+        g.smooth_low_rank_complete(xy, smoothness=-1.0)
 
 
 # ---------------------------------------------------------- metric upgrade

@@ -25,7 +25,7 @@ from scipy.linalg import solveh_banded
 from scipy.spatial.transform import Rotation
 
 from . import _rotation_kernels as _rk
-from ._validation import as_float_array, check_random_state
+from ._validation import as_float_array, check_positive, check_random_state
 
 __all__ = [
     "Factorization",
@@ -458,10 +458,10 @@ def fill_gaps(xy: Any, *, ends: bool = True) -> np.ndarray:
     smooth trajectories change little over a short gap), never a substitute for
     the observations in a likelihood.
     """
-    out = np.array(xy, dtype=float, copy=True)
+    out = np.array(_check_xy(xy), dtype=float, copy=True)
     P, F, D = out.shape
     f = np.arange(F)
-    for p in range(P):
+    for p in range(P):  # one np.interp per point and coordinate, vectorised over the gap's frames
         o = ~np.isnan(out[p, :, 0])
         if o.all() or not o.any():
             continue
@@ -626,6 +626,14 @@ def _smooth_low_rank_complete(xy: Any, rank: int, smoothness: float | None, smoo
                               ) -> np.ndarray | tuple[np.ndarray, dict[str, Any]]:
     xy = _check_xy(xy)
     rank = _check_rank(rank)
+    if smoothness is not None:
+        check_positive(smoothness, "smoothness")
+    for cand in smoothness_grid:
+        check_positive(cand, "smoothness_grid entries")
+    check_positive(ridge, "ridge", allow_zero=True)
+    check_positive(n_iter, "n_iter", integer=True)
+    if not 0.0 < float(holdout) < 1.0:
+        raise ValueError(f"holdout must be a share of the observed entries in (0, 1), got {holdout!r}")
     P, F, D = xy.shape
     obs = ~np.isnan(xy[..., 0])
     out = xy.copy()
