@@ -838,7 +838,7 @@ def test_fill_gaps_interpolates_interior_gaps_only():
 @pytest.mark.parametrize("seed", [16, 18])
 def test_first_groups_of_sparse_data_come_from_the_smooth_completion(seed):
     """75 % withheld: grouped on the smooth low-rank completion, the 4 parts come out exactly
-    (on these two figures interpolation in time gave ARI 0.64 and 0.72; docs/em.md section 5)."""
+    (on these two figures interpolation in time gave ARI 0.66 and 0.72; docs/em.md section 5)."""
     from stickfigure.models.em import _initial_groups
 
     traj = sf.synthetic.random_figure(n_sticks=4, frames=120, noise=0.01, seed=seed, points_per_stick=(5, 9))

@@ -162,7 +162,6 @@ def test_completion_and_the_segmentation_on_it_repeat_exactly():
     assert runs[0][0].tolist() == runs[1][0].tolist() and runs[0][1]["fit_level"] == runs[1][1]["fit_level"]
 
 
-
 def _sparse_figure(seed, withheld=0.75):
     """A random 4-stick figure's first 84 frames with ``withheld`` of its entries removed at random."""
     traj = sf.synthetic.random_figure(n_sticks=4, frames=84, noise=0.01, seed=seed, points_per_stick=(5, 9))
