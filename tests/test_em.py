@@ -864,6 +864,7 @@ def test_first_groups_of_sparse_data_fall_back_to_interpolation_when_it_predicts
     _, info = _initial_groups(sf.Trajectories(xy), 12, np.random.default_rng(0))
     assert info["input"].startswith("gaps interpolated")
     assert info["completion"]["interpolation_rmse"] < min(info["completion"]["holdout_rmse"].values())
+    assert info["completion"]["method"] == "interpolation"
 
 
 def test_sparse_training_keeps_the_groups(chain):

@@ -184,6 +184,8 @@ def test_smooth_low_rank_completion_beats_interpolation_on_sparse_figures(seed):
     assert info["rank"] == 16 and info["smoothness"] in info["holdout_rmse"]
     # Its held-out error says so too (em's first grouping reads it to choose the fill).
     assert min(info["holdout_rmse"].values()) < info["interpolation_rmse"]
+    assert info["method"] == "smooth low-rank"
+    np.testing.assert_array_equal(g.smooth_low_rank_complete(xy, interpolation_fallback=True), filled)
 
 
 def test_smooth_low_rank_completion_edge_cases():

@@ -530,19 +530,23 @@ def _smooth_factor_als(X: np.ndarray, W: np.ndarray, U: np.ndarray, V: np.ndarra
     return U, V
 
 
-def _smooth_low_rank_fit(xy: np.ndarray, rank: int, smoothness: float, ridge: float, n_iter: int) -> np.ndarray:
-    """One fit of :func:`smooth_low_rank_complete` with fixed settings; points never seen stay NaN."""
+def _smooth_low_rank_fits(xy: np.ndarray, interpolated: np.ndarray, rank: int, smoothnesses: tuple[float, ...],
+                          ridge: float, n_iter: int) -> list[np.ndarray]:
+    """Fits of :func:`smooth_low_rank_complete`, one per smoothness, all from one start: the SVD of
+    ``interpolated`` (``fill_gaps(xy)``). Points never seen stay NaN."""
     P, F, D = xy.shape
     X = np.transpose(xy, (2, 1, 0)).reshape(D * F, P)
     W = ~np.isnan(X)
-    start = np.transpose(fill_gaps(xy), (2, 1, 0)).reshape(D * F, P)
+    X0 = np.where(W, X, 0.0)
+    start = np.transpose(interpolated, (2, 1, 0)).reshape(D * F, P)
     Uf, s, Vt = np.linalg.svd(start, full_matrices=False)
     r = int(min(rank, s.size))
-    U, V = Uf[:, :r] * s[:r], Vt[:r].T.copy()
     weights = s[0] / np.maximum(s[:r], 1e-12 * max(s[0], 1e-300))
-    U, V = _smooth_factor_als(np.where(W, X, 0.0), W, U, V, weights, smoothness, ridge, n_iter, D)
-    out = np.where(W, X, U @ V.T)
-    return np.transpose(out.reshape(D, F, P), (2, 1, 0))
+    out = []
+    for lam in smoothnesses:
+        U, V = _smooth_factor_als(X0, W, Uf[:, :r] * s[:r], Vt[:r].T.copy(), weights, lam, ridge, n_iter, D)
+        out.append(np.transpose(np.where(W, X, U @ V.T).reshape(D, F, P), (2, 1, 0)))
+    return out
 
 
 def smooth_low_rank_complete(
@@ -554,6 +558,7 @@ def smooth_low_rank_complete(
     ridge: float = 0.01,
     n_iter: int = 20,
     holdout: float = 0.1,
+    interpolation_fallback: bool = False,
     random_state: Any = 0,
     return_info: bool = False,
 ) -> np.ndarray | tuple[np.ndarray, dict[str, Any]]:
@@ -602,12 +607,18 @@ def smooth_low_rank_complete(
         Alternating least-squares sweeps (each fit starts from :func:`fill_gaps`'s SVD).
     holdout : float
         Share of the observed entries held out to choose ``lambda``.
+    interpolation_fallback : bool
+        Return :func:`fill_gaps`'s linear interpolation instead where it predicts the
+        held-out entries better than every ``lambda`` (only when ``lambda`` is chosen
+        here): on motion capture at 120 Hz the gaps are a few frames and the markers
+        more independent than the rank, and interpolation wins there.
     random_state : None, int or Generator
         Chooses the held-out entries.
     return_info : bool
-        Also return ``{"rank", "smoothness", "holdout_rmse", "interpolation_rmse"}``: the
-        held-out RMS error of each ``lambda`` tried and of :func:`fill_gaps` on the same
-        entries (None when ``smoothness`` is given), so a caller can take the better fill.
+        Also return ``{"rank", "smoothness", "holdout_rmse", "interpolation_rmse", "method"}``:
+        the held-out RMS error of each ``lambda`` tried and of :func:`fill_gaps` on the same
+        entries (None when ``smoothness`` is given), and which fill was returned
+        (``"smooth low-rank"`` or ``"interpolation"``).
 
     Returns
     -------
@@ -618,12 +629,12 @@ def smooth_low_rank_complete(
 
     with blas_threads():  # many small solves: more BLAS threads only add synchronisation (20x slower on 2 cores)
         return _smooth_low_rank_complete(xy, rank, smoothness, smoothness_grid, ridge, n_iter, holdout,
-                                         random_state, return_info)
+                                         interpolation_fallback, random_state, return_info)
 
 
 def _smooth_low_rank_complete(xy: Any, rank: int, smoothness: float | None, smoothness_grid: tuple[float, ...],
-                              ridge: float, n_iter: int, holdout: float, random_state: Any, return_info: bool
-                              ) -> np.ndarray | tuple[np.ndarray, dict[str, Any]]:
+                              ridge: float, n_iter: int, holdout: float, interpolation_fallback: bool,
+                              random_state: Any, return_info: bool) -> np.ndarray | tuple[np.ndarray, dict[str, Any]]:
     xy = _check_xy(xy)
     rank = _check_rank(rank)
     if smoothness is not None:
@@ -638,7 +649,8 @@ def _smooth_low_rank_complete(xy: Any, rank: int, smoothness: float | None, smoo
     obs = ~np.isnan(xy[..., 0])
     out = xy.copy()
     seen = obs.any(axis=1)
-    info: dict[str, Any] = {"rank": 0, "smoothness": smoothness, "holdout_rmse": {}, "interpolation_rmse": None}
+    info: dict[str, Any] = {"rank": 0, "smoothness": smoothness, "holdout_rmse": {}, "interpolation_rmse": None,
+                            "method": "smooth low-rank"}
     if obs.all() or seen.sum() < 2:
         return (out, info) if return_info else out
     sub, so = xy[seen], obs[seen]
@@ -651,19 +663,23 @@ def _smooth_low_rank_complete(xy: Any, rank: int, smoothness: float | None, smoo
         held[(so & ~held).sum(axis=1) < 2] = False  # every point keeps two observations
         if held.any():
             train = np.where(held[..., None], np.nan, sub)
-            errs = {}
-            for cand in smoothness_grid:
-                pred = _smooth_low_rank_fit(train, r, float(cand), ridge, n_iter)
-                errs[float(cand)] = float(np.sqrt(np.mean((pred - sub)[held] ** 2)))
+            lin = fill_gaps(train)  # the start of every fit below, and interpolation's own prediction
+            grid = tuple(float(c) for c in smoothness_grid)
+            preds = _smooth_low_rank_fits(train, lin, r, grid, ridge, n_iter)
+            errs = {c: float(np.sqrt(np.mean((pred - sub)[held] ** 2))) for c, pred in zip(grid, preds)}
             lam = min(errs, key=errs.get)
             info["holdout_rmse"] = errs
-            # The same entries filled by linear interpolation in time, for callers that choose.
-            lin = fill_gaps(train)
             info["interpolation_rmse"] = float(np.sqrt(np.mean((lin - sub)[held] ** 2)))
         else:
             lam = 1.0
     info["smoothness"] = float(lam)
-    out[seen] = _smooth_low_rank_fit(sub, r, float(lam), ridge, n_iter)
+    interpolated = fill_gaps(sub)
+    lin_err = info["interpolation_rmse"]
+    if interpolation_fallback and lin_err is not None and lin_err < min(info["holdout_rmse"].values()):
+        info["method"] = "interpolation"
+        out[seen] = interpolated
+    else:
+        out[seen] = _smooth_low_rank_fits(sub, interpolated, r, (float(lam),), ridge, n_iter)[0]
     return (out, info) if return_info else out
 
 

@@ -815,13 +815,10 @@ def _initial_groups(traj: Trajectories, max_segments: int, rng: np.random.Genera
                                              random_state=rng, return_info=True)
     seed = int(rng.integers(2**31 - 1))
     if traj.observed.mean() < 0.5:
-        filled, fill_info = smooth_low_rank_complete(traj.xy, random_state=seed, return_info=True)
-        held = fill_info["holdout_rmse"]
-        lin = fill_info["interpolation_rmse"]
-        if lin is not None and held and lin < min(held.values()):
-            filled, how = fill_gaps(traj.xy), "gaps interpolated (lower held-out error)"
-        else:
-            how = "smooth low-rank completion"
+        filled, fill_info = smooth_low_rank_complete(traj.xy, interpolation_fallback=True, random_state=seed,
+                                                     return_info=True)
+        how = ("gaps interpolated (lower held-out error)" if fill_info["method"] == "interpolation"
+               else "smooth low-rank completion")
         lab, info = affinity_propagation_segments(filled, max_segments=max_segments, n_segments=n_segments,
                                                   random_state=seed, return_info=True)
         return lab, {**info, "input": how, "completion": fill_info}
