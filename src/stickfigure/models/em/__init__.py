@@ -665,9 +665,11 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
     P = traj.n_points
     info0: dict[str, Any] = {}
     starts = []
+    filled = None
     if labels is None:
         ms = max_sticks if max_sticks is not None else int(max(2, min(20, P // 3)))
         labels, ap = _initial_groups(traj, ms, rng)
+        filled = ap.get("filled")
         info0["initial_clustering"] = {k: v for k, v in ap.items() if isinstance(v, (int, float, str, type(None)))}
         starts.append(labels)
         fine = min(int(np.ceil(P / oversegment)), ms) if oversegment is not None else 0
@@ -678,6 +680,17 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
         if (labels < 0).any():
             raise ValueError("labels must assign every point to a stick (no -1)")
         starts.append(labels)
+    if filled is None and obs_all.mask.mean() < 0.5:
+        # Given groups: the same completion the grouping would have used (its own fixed seed,
+        # so that rng's stream is the one without it).
+        filled = smooth_low_rank_complete(traj.xy, interpolation_fallback=True, random_state=0)
+    if filled is not None:
+        # Sparse data (fewer than half the entries seen): every stick's SfM start factorises
+        # the scene's completion (low-rank and smooth in time) instead of its own trajectories
+        # interpolated in time, whose errors the metric upgrade turned into rotations EM could
+        # not undo (docs/em.md section 5).
+        obs_all.filled = (filled - centre) / scale
+        obs = obs_all if frames is None else obs_all.take_frames(frames)
 
     def search(labels: np.ndarray, r: np.random.Generator, k: int, show: bool = progress
                ) -> tuple[list[Stage], int, int]:
@@ -821,7 +834,7 @@ def _initial_groups(traj: Trajectories, max_segments: int, rng: np.random.Genera
                else "smooth low-rank completion")
         lab, info = affinity_propagation_segments(filled, max_segments=max_segments, n_segments=n_segments,
                                                   random_state=seed, return_info=True)
-        return lab, {**info, "input": how, "completion": fill_info}
+        return lab, {**info, "input": how, "completion": fill_info, "filled": filled}
     filled = fill_gaps(traj.xy)
     lab_f, info_f = affinity_propagation_segments(filled, max_segments=max_segments, n_segments=n_segments,
                                                   random_state=seed, return_info=True)

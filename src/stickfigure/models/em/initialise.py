@@ -82,7 +82,8 @@ def _fit_local(w: np.ndarray, m: np.ndarray, R: np.ndarray, t: np.ndarray, ridge
     return np.linalg.solve(H, rhs[..., None])[..., 0]
 
 
-def _rigid_sfm(pts: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _rigid_sfm(pts: np.ndarray, rng: np.random.Generator, filled: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Metric SfM of one rigid group (n >= 4 points) with NaN gaps: R (F, D, 3), t (F, D), local (n, 3).
 
     Missing entries stay out of every fit. Frames where the group shows at least 4
@@ -93,9 +94,11 @@ def _rigid_sfm(pts: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, n
     fewer than 4 points leaves its affine motion undetermined, and a garbage one
     would corrupt the metric upgrade of all frames). Otherwise (sparse data:
     frames rarely show 4 points) the factorisation runs on the trajectories
-    with their gaps interpolated in time (:func:`fill_gaps`), and the local
-    coordinates and translations are then re-fitted to the observed entries
-    only.
+    with their gaps filled, and the local coordinates and translations are then
+    re-fitted to the observed entries only. The gaps are interpolated in time
+    (:func:`fill_gaps`); where ``filled`` (n, F, D; the whole scene's completion,
+    :attr:`Observations.filled`) is given, both fills are factorised and the start
+    with the lower residual on the observed entries is kept.
     """
     n, F, D = pts.shape
     obs = ~np.isnan(pts[..., 0])
@@ -107,19 +110,32 @@ def _rigid_sfm(pts: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, n
         fac = affine_factorization(pts, rank=3, random_state=rng)
         R, _, t, shape = metric_upgrade(fac.motions, fac.shape)
         return R, t, shape
-    filled = fill_gaps(pts)
+    interpolated = fill_gaps(pts)
     if good.sum() >= max(3, 0.5 * F) and obs[:, good].any(axis=1).all():
         fac = affine_factorization(pts[:, good], rank=3, random_state=rng)
         Rg, _, _, local = metric_upgrade(fac.motions, fac.shape)
         R = np.zeros((F, D, 3))
         R[good] = Rg
         R = interpolate_rotations(R, good)
-    else:
-        fac = affine_factorization(filled, rank=3, random_state=rng)
+        local = _bound_spread(local, interpolated if filled is None else filled)
+        return R, _translations(w, m, R, local), local
+    # With the scene's completion given, the stick's own interpolated trajectories are a
+    # second start, and the one that fits the observed entries better is kept: the
+    # completion's smoothness is chosen for the whole scene, and for one stick it can be
+    # wrong (a 5-point stick started 30 times worse from one held-out draw's choice than
+    # from the others'; after 200 EM sweeps alone still 5 times). The start's fit predicts
+    # the fit EM reaches from it (docs/em.md section 5).
+    best: tuple[float, np.ndarray, np.ndarray, np.ndarray] | None = None
+    for fill in [interpolated] if filled is None else [filled, interpolated]:
+        fac = affine_factorization(fill, rank=3, random_state=rng)
         R, _, t, _ = metric_upgrade(fac.motions, fac.shape)
-        local = _fit_local(w, m, R, t)
-    local = _bound_spread(local, filled)
-    return R, _translations(w, m, R, local), local
+        local = _bound_spread(_fit_local(w, m, R, t), fill)
+        t = _translations(w, m, R, local)
+        rss = float(np.sum(m[..., None] * (w - np.einsum("fdk,nk->nfd", R, local) - t[None]) ** 2))
+        if best is None or rss < best[0]:
+            best = (rss, R, t, local)
+    assert best is not None
+    return best[1], best[2], best[3]
 
 
 #: A group's 3D principal spreads are capped at this multiple of its largest 2D spread over frames.
@@ -170,7 +186,7 @@ def stick_sfm(obs: Observations, labels: np.ndarray, n_sticks: int, rng: np.rand
         pts = xy[idx]
         m = obs.mask[idx]
         if idx.size >= 4:
-            rot[s], trans[s], local[idx] = _rigid_sfm(pts, rng)
+            rot[s], trans[s], local[idx] = _rigid_sfm(pts, rng, None if obs.filled is None else obs.filled[idx])
             continue
         # Too few points for a rank-3 factorisation: a flat shape seen face-on, translations
         # from the visible centroid (held over frames where none is visible); EM refines it.

@@ -61,10 +61,15 @@ class Observations:
         Positions, 0 where missing.
     mask : ndarray, shape (P, F)
         1.0 where observed, 0.0 where missing.
+    filled : ndarray, shape (P, F, D), or None
+        A completion of the trajectories (normalised units, no gaps) that starts the
+        per-stick SfM of sparse sticks (:func:`.initialise.stick_sfm`); None: their
+        gaps are interpolated in time there. The EM itself never reads it.
     """
 
     w: np.ndarray
     mask: np.ndarray
+    filled: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         # C-ordered float64, as the compiled loops take them (._point_kernels): a strided view
@@ -85,10 +90,12 @@ class Observations:
         return int(self.w.shape[2])
 
     def take(self, points: np.ndarray) -> "Observations":
-        return Observations(self.w[points], self.mask[points])
+        return Observations(self.w[points], self.mask[points],
+                            None if self.filled is None else self.filled[points])
 
     def take_frames(self, frames: np.ndarray) -> "Observations":
-        return Observations(self.w[:, frames], self.mask[:, frames])
+        return Observations(self.w[:, frames], self.mask[:, frames],
+                            None if self.filled is None else self.filled[:, frames])
 
 
 def normalise(xy: np.ndarray) -> tuple[Observations, np.ndarray, float]:
