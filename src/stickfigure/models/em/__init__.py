@@ -685,10 +685,10 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
         # so that rng's stream is the one without it).
         filled = smooth_low_rank_complete(traj.xy, interpolation_fallback=True, random_state=0)
     if filled is not None:
-        # Sparse data (fewer than half the entries seen): every stick's SfM start factorises
-        # the scene's completion (low-rank and smooth in time) instead of its own trajectories
-        # interpolated in time, whose errors the metric upgrade turned into rotations EM could
-        # not undo (docs/em.md section 5).
+        # Sparse data (fewer than half the entries seen): every stick's SfM start is also made
+        # from the scene's completion (low-rank and smooth in time), not only from its own
+        # trajectories interpolated in time, whose errors the metric upgrade turned into
+        # rotations EM could not undo; the better-fitting start is kept (docs/em.md section 5).
         obs_all.filled = (filled - centre) / scale
         obs = obs_all if frames is None else obs_all.take_frames(frames)
 

@@ -122,7 +122,7 @@ def _rigid_sfm(pts: np.ndarray, rng: np.random.Generator, filled: np.ndarray | N
     # With the scene's completion given, the stick's own interpolated trajectories are a
     # second start, and the one that fits the observed entries better is kept: the
     # completion's smoothness is chosen for the whole scene, and for one stick it can be
-    # wrong (a 5-point stick started 30 times worse from one held-out draw's choice than
+    # wrong (a 5-point stick started 50 times worse from one held-out draw's choice than
     # from the others'; after 200 EM sweeps alone still 5 times). The start's fit predicts
     # the fit EM reaches from it (docs/em.md section 5).
     best: tuple[float, np.ndarray, np.ndarray, np.ndarray] | None = None

@@ -1004,10 +1004,9 @@ def rigid_joints(st: StickState, obs: Observations) -> np.ndarray:
     sizes overstated the cost about fourfold, and true joints of random figures measured
     up to 14 times their saving (now at most 3.5) and were read as loose, so the merge
     that completed the true tree lowered BIC and was not selected (docs/em.md section 11).
-    A vertex whose cost exceeds its
-    saving is a loose link (two independently moving bodies joined by a vertex of
-    low precision): it is not counted as a joint in :func:`n_parameters`, so BIC
-    prefers leaving the trees apart whenever the objective does. The cost closes
+    A vertex whose cost exceeds its saving is a loose link (two independently moving
+    bodies joined by a vertex of low precision): it is not counted as a joint in
+    :func:`n_parameters`, so BIC prefers leaving the trees apart whenever the objective does. The cost closes
     the gap by translations alone, an upper bound (the rotations can absorb part
     of it), so a vertex is loose only when the cost exceeds ``LOOSE_FACTOR`` (10)
     times the saving. Measured cost/saving: true joints of random figures at
@@ -1033,8 +1032,7 @@ def rigid_joints(st: StickState, obs: Observations) -> np.ndarray:
         # Closing the gap in a frame costs the harmonic mean of the points each stick shows
         # *there*; a stick that shows none moves for free. Complete data: F times the sizes'.
         n_f = seen[sticks]  # (m, F)
-        with np.errstate(divide="ignore"):
-            h_f = np.where(np.all(n_f > 0, axis=0), m / np.sum(1.0 / np.maximum(n_f, 1e-300), axis=0), 0.0)
+        h_f = np.where(np.all(n_f > 0, axis=0), m / np.sum(1.0 / np.maximum(n_f, 1.0), axis=0), 0.0)
         cost = 0.5 * st.tau_w * m * res * float(h_f.sum())
         saving = 0.5 * logN * ((m - 1) * D * F - 3 * m)
         out[j] = cost < LOOSE_FACTOR * saving
