@@ -862,6 +862,15 @@ def test_fill_gaps_interpolates_interior_gaps_only():
     np.testing.assert_allclose(fill_gaps(xy)[0, 0], xy[0, 1])
 
 
+def _withheld(traj: sf.Trajectories, seed: int, fraction: float = 0.75) -> sf.Trajectories:
+    """``traj`` with ``fraction`` of its entries hidden at random (generator ``seed``); every
+    point keeps at least one observation (the protocol of the paper's 75 %-withheld claim)."""
+    rng = np.random.default_rng(seed)
+    hide = rng.random(traj.xy.shape[:2]) < fraction
+    hide[np.arange(traj.n_points), rng.integers(0, traj.n_frames, traj.n_points)] = False
+    return traj.with_xy(np.where(hide[..., None], np.nan, traj.xy), allow_unobserved=False)
+
+
 @pytest.mark.parametrize("seed", [16, 18])
 def test_first_groups_of_sparse_data_come_from_the_smooth_completion(seed):
     """75 % withheld: grouped on the smooth low-rank completion, the 4 parts come out exactly
@@ -870,10 +879,7 @@ def test_first_groups_of_sparse_data_come_from_the_smooth_completion(seed):
 
     traj = sf.synthetic.random_figure(n_sticks=4, frames=120, noise=0.01, seed=seed, points_per_stick=(5, 9))
     train, _ = traj.split(0.7)
-    rng = np.random.default_rng(5)
-    hide = rng.random(train.xy.shape[:2]) < 0.75
-    hide[np.arange(train.n_points), rng.integers(0, train.n_frames, train.n_points)] = False
-    sparse = train.with_xy(np.where(hide[..., None], np.nan, train.xy), allow_unobserved=False)
+    sparse = _withheld(train, seed=5)
     labels, info = _initial_groups(sparse, 12, np.random.default_rng(0))
     assert info["input"] == "smooth low-rank completion"
     assert adjusted_rand_score(traj.labels_true, labels) == 1.0
@@ -903,10 +909,7 @@ def test_sparse_training_keeps_the_last_true_joint(seed):
     edge missing on both figures; docs/em.md section 11)."""
     traj = sf.synthetic.random_figure(n_sticks=4, frames=120, noise=0.01, seed=seed, points_per_stick=(5, 9))
     train, _ = traj.split(0.7)
-    rng = np.random.default_rng(5)
-    hide = rng.random(train.xy.shape[:2]) < 0.75
-    hide[np.arange(train.n_points), rng.integers(0, train.n_frames, train.n_points)] = False
-    sparse = train.with_xy(np.where(hide[..., None], np.nan, train.xy), allow_unobserved=False)
+    sparse = _withheld(train, seed=5)
     sk = sf.fit(sparse, method="em", random_state=3)
     assert adjusted_rand_score(traj.labels_true, sk.labels) == 1.0
     assert _edges(sk, traj) == _true_edges(traj)
@@ -918,10 +921,7 @@ def test_sparse_training_keeps_the_groups(chain):
     (The per-stick start used to begin every stick hidden in some frame flat, and EM let
     frames showing one or two points turn freely, which blew the sticks' depth up.)
     """
-    rng = np.random.default_rng(2)
-    hide = rng.random(chain.xy.shape[:2]) < 0.75
-    hide[np.arange(chain.n_points), rng.integers(0, chain.n_frames, chain.n_points)] = False
-    sparse = chain.with_xy(np.where(hide[..., None], np.nan, chain.xy), allow_unobserved=False)
+    sparse = _withheld(chain, seed=2)
     sk = sf.fit(sparse, method="em", random_state=0, labels=chain.labels_true, n_iter=60)
     assert sk.n_sticks == 3
     assert adjusted_rand_score(chain.labels_true, sk.labels) == 1.0
@@ -955,13 +955,10 @@ def test_training_with_missing_data_recovers_structure_and_imputes(condition):
     such figures here, not all (docs/em.md section 11)."""
     traj = sf.synthetic.random_figure(n_sticks=4, frames=120, noise=0.01, seed=11, points_per_stick=(5, 9))
     train, test = traj.split(0.7)
-    rng = np.random.default_rng(5)
     if condition == "occluded":
         train, _ = sf.synthetic.occlude(train, seed=6)
     else:
-        hide = rng.random(train.xy.shape[:2]) < 0.75
-        hide[np.arange(train.n_points), rng.integers(0, train.n_frames, train.n_points)] = False
-        train = train.with_xy(np.where(hide[..., None], np.nan, train.xy), allow_unobserved=False)
+        train = _withheld(train, seed=5)
     em, sk = _imputation_rmse("em", train, test, seed=3)
     mb, _ = _imputation_rmse("multibody-sfm", train, test, seed=3)
     assert adjusted_rand_score(traj.labels_true, sk.labels) > 0.9
