@@ -34,7 +34,7 @@ from .forked import Speculative
 from .impute import centroid_concentration, frame_scales, refit_motions, rotation_concentration, start_state
 from .initialise import initial_state
 from .model import Observations, Priors, StickState, hub_endpoints, normalise
-from .refine import misfit_ratios
+from .refine import local_noise_variance, misfit_ratios
 from .structure import (EMSettings, Stage, child_rng, extend_frames, learn_structure, run_em,
                         joint_support, search_frames, settings_bic, stick_edges)
 from .updates import mirror_alignment, stick_centroids
@@ -628,6 +628,12 @@ def _impute_plain(skeleton: Skeleton, traj: Trajectories) -> np.ndarray:
 # robust noise variance by this factor holds points of more than one part (refine.misfit_ratios;
 # measured: right sticks of random figures 0.95-1.34, wrong ones 1.39-3.4, CMU 85_02 7.4).
 OVERSEGMENT_MISFIT = 1.35
+# ... or exceeds the data's local noise variance (geometry.noise_level, squared) by this factor:
+# measured on 36 random figures at 1 % noise, right sticks 1.12-1.40 (the local estimate is
+# biased low: it takes the most rigid small sets); at 3 % noise, where all of a first search's
+# sticks can hold two parts and the factor above stays near 1, right figures up to 1.54 and
+# sticks holding two parts 1.36-3.2 (docs/em.md section 11).
+OVERSEGMENT_LOCAL_MISFIT = 1.5
 # ... or when its sticks hold more than this many points on average (HDM05's 41 markers in 4
 # sticks fit at 1.28: the lower quartile of 4 bad sticks is no noise level).
 OVERSEGMENT_SIZE = 10.0
@@ -745,11 +751,21 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
             # and the stick it added is not one the search found.
             worst = float(misfit_ratios(stages[selected].state, obs, priors).max())
             info0["first_start_misfit"] = worst
+            # The lower quartile over sticks is no noise level when every stick holds two parts
+            # (a noisy figure whose first groups were all too coarse): the data's local noise
+            # level, from the most rigid small sets of neighbouring points, is one that holds then.
+            var_local = local_noise_variance(obs, priors)
+            local = 0.0 if var_local is None else float(
+                misfit_ratios(stages[selected].state, obs, priors, var=var_local).max())
+            info0["first_start_local_misfit"] = local
             hubs = sum(len(s.hubs) for s in stages)
             info0["first_start_hub_split"] = hubs > 0
             n_first = int(stages[selected].labels.max()) + 1 - hubs
             # A start is only finer if it has more groups than the first search ended with sticks.
-            if (worst > OVERSEGMENT_MISFIT or P > OVERSEGMENT_SIZE * n_first or hubs) and fine > n_first:
+            if (worst > OVERSEGMENT_MISFIT or local > OVERSEGMENT_LOCAL_MISFIT or P > OVERSEGMENT_SIZE * n_first
+                    or hubs) and fine > n_first:
+                info0["second_start_by_local_misfit"] = not (worst > OVERSEGMENT_MISFIT
+                                                             or P > OVERSEGMENT_SIZE * n_first or hubs)
                 runs.append(second.result())
                 info0["second_start_parallel"] = second.forked
     # Starts are compared by BIC whatever the selection: the objective has no charge for the

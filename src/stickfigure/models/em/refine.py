@@ -28,6 +28,7 @@ from typing import Callable
 import numpy as np
 
 from ..._validation import check_positive
+from ...geometry import noise_level
 from ...synthetic import occlude
 from ...trajectories import Trajectories
 from .initialise import initial_state
@@ -944,7 +945,21 @@ def split_hubs(st: StickState, obs: Observations, priors: Priors, settings, rng:
 
 
 # ----------------------------------------------------------------- moving groups of points
-def misfit_ratios(st: StickState, obs: Observations, priors: Priors) -> np.ndarray:
+def local_noise_variance(obs: Observations, priors: Priors) -> float | None:
+    """The data's local noise variance per coordinate, independent of any sticks.
+
+    :func:`geometry.noise_level` squared (the residual of the most rigid small sets
+    of neighbouring trajectories), floored as :func:`noise_variance`'s is. None where
+    fewer than 5 distinct trajectories admit no rigidity test.
+    """
+    try:
+        sigma = noise_level(np.where(obs.mask[..., None] > 0, obs.w, np.nan))
+    except ValueError:  # fewer than rank + 2 distinct trajectories
+        return None
+    return max(sigma * sigma, 1.0 / priors.max_precision)
+
+
+def misfit_ratios(st: StickState, obs: Observations, priors: Priors, var: float | None = None) -> np.ndarray:
     """Each stick's residual variance over the robust noise variance, shape (S,).
 
     The residual variance is corrected for the degrees of freedom of the stick's
@@ -954,9 +969,11 @@ def misfit_ratios(st: StickState, obs: Observations, priors: Priors) -> np.ndarr
     :func:`noise_variance`'s lower quartile over sticks. A rigid stick fits at
     about 1 (measured on random figures: 0.95-1.34, mostly below 1.15); a stick
     holding points of two parts beside a joint 1.4-3.5, two body segments joined
-    in one stick far more.
+    in one stick far more. ``var``: another noise variance to compare with (the
+    data's local one, :func:`geometry.noise_level` squared).
     """
-    rss, var = noise_variance(st, obs, priors)
+    rss, var0 = noise_variance(st, obs, priors)
+    var = var0 if var is None else var
     dof = fit_dof(st, obs)
     return np.where(dof > 0, rss / (var * np.maximum(dof, 1)), 0.0)
 
