@@ -458,12 +458,12 @@ def test_no_second_start_when_every_stick_is_rigid():
 
 @pytest.mark.parametrize("seed, frames", [(7015, 105), (7046, 116)])
 def test_noisy_figure_whose_sticks_all_hold_two_parts_gets_the_second_start(seed, frames):
-    # Known answer at 3 % noise (three times the benchmark's): the clustering finds 2 groups
-    # for these 3-part figures, and the first search ends with 2 sticks, each holding points
-    # of two parts. Their misfit against the lower quartile over sticks stays near 1 (1.08,
-    # 1.21): both are bad alike. Against the data's local noise level they fit 1.92 and 2.25
-    # times worse, so the finer start runs, and it finds the three parts and their tree
-    # (before: ARI 0.52 and 0.48, edge F1 0 and 0.67).
+    # Known answer at 3 % noise (three times the benchmark's): the first search ends with 2
+    # sticks for these 3-part figures, one holding points of two parts, and the worst misfit
+    # against the lower quartile over the sticks stays near 1 (1.08, 1.21): a noise level taken
+    # from sticks that are all too coarse is inflated with them. Against the data's local noise
+    # level it is 1.92 and 2.25, so the finer start runs, and it finds the three parts and
+    # their tree (before: ARI 0.52 and 0.48, edge F1 0 and 0.67).
     traj = sf.synthetic.random_figure(n_sticks=3, frames=frames, noise=0.03, seed=seed, points_per_stick=(5, 9))
     sk = sf.fit(traj, method="em", random_state=seed, n_jobs=1)
     assert sk.info["first_start_misfit"] <= 1.35 < 1.5 < sk.info["first_start_local_misfit"]
