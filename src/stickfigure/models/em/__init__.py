@@ -630,7 +630,7 @@ def _impute_plain(skeleton: Skeleton, traj: Trajectories) -> np.ndarray:
 OVERSEGMENT_MISFIT = 1.35
 # ... or exceeds the data's local noise variance (geometry.noise_level, squared) by this factor:
 # measured on 36 random figures at 1 % noise, right sticks 1.12-1.40 (the local estimate is
-# biased low: it takes the most rigid small sets); at 3 % noise, where all of a first search's
+# biased low: it takes the most rigid small sets); at 3 % noise, where most of a first search's
 # sticks can hold two parts and the factor above stays near 1, right figures up to 1.54 and
 # sticks holding two parts 1.36-3.2 (docs/em.md section 11).
 OVERSEGMENT_LOCAL_MISFIT = 1.5
@@ -751,7 +751,7 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
             # and the stick it added is not one the search found.
             worst = float(misfit_ratios(stages[selected].state, obs, priors).max())
             info0["first_start_misfit"] = worst
-            # The lower quartile over sticks is no noise level when every stick holds two parts
+            # The lower quartile over sticks is no noise level when most sticks hold two parts
             # (a noisy figure whose first groups were all too coarse): the data's local noise
             # level, from the most rigid small sets of neighbouring points, is one that holds then.
             var_local = local_noise_variance(obs, priors)
