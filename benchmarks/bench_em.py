@@ -22,8 +22,8 @@ em-structure-low-noise
     and how many sticks more than parts each one got).
 em-structure-noisy
     The same random figures with 2 % and 3 % noise (of the mean stick length; 1 % of
-    the figure's size is about 3 %): mean ARI, edge F1, exact-structure rate, and how
-    many sticks more than parts each one got (negative: too few).
+    the figure's bounding-box diagonal is about 2 %): mean ARI, edge F1, exact-structure
+    rate, and how many sticks more than parts each one got (negative: too few).
 em-structure-virtual-markers
     CMU subject 131 (a walk, the BVH in the data directory) at 30 Hz with three
     noiseless virtual markers on every bone, isometric and side views: another
@@ -250,8 +250,8 @@ def case_structure_low_noise(ctx: Context) -> Iterator[dict[str, Any]]:
 
 
 def case_structure_noisy(ctx: Context) -> Iterator[dict[str, Any]]:
-    # "1 % noise" of the figure's size is 2-4 % of a stick's length: there the clustering's
-    # groups can all be too coarse (docs/em.md section 11, session 35).
+    # "1 % noise" of the figure's bounding-box diagonal is about 2 % of a stick's length; at 3 %
+    # the clustering's groups can all be too coarse (docs/em.md section 11, session 35).
     for noise in (0.02, 0.03):
         mean, extra = _random_structure(ctx, noise)
         yield {"dataset": f"random_figure 3D, noise {noise:g}", "method": "em", **mean,
