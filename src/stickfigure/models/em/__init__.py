@@ -761,11 +761,11 @@ def fit_stages(traj: Trajectories, settings: EMSettings, priors: Priors, rng: np
             hubs = sum(len(s.hubs) for s in stages)
             info0["first_start_hub_split"] = hubs > 0
             n_first = int(stages[selected].labels.max()) + 1 - hubs
+            # The rules before session 35; the local misfit is the one added then.
+            before = worst > OVERSEGMENT_MISFIT or P > OVERSEGMENT_SIZE * n_first or hubs > 0
             # A start is only finer if it has more groups than the first search ended with sticks.
-            if (worst > OVERSEGMENT_MISFIT or local > OVERSEGMENT_LOCAL_MISFIT or P > OVERSEGMENT_SIZE * n_first
-                    or hubs) and fine > n_first:
-                info0["second_start_by_local_misfit"] = not (worst > OVERSEGMENT_MISFIT
-                                                             or P > OVERSEGMENT_SIZE * n_first or hubs)
+            if (before or local > OVERSEGMENT_LOCAL_MISFIT) and fine > n_first:
+                info0["second_start_by_local_misfit"] = not before
                 runs.append(second.result())
                 info0["second_start_parallel"] = second.forked
     # Starts are compared by BIC whatever the selection: the objective has no charge for the
