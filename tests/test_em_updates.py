@@ -837,6 +837,93 @@ def test_align_mirrors_undoes_flips_of_a_flat_stick_where_the_energy_ties():
     assert none is None and same is R
 
 
+def _align_mirrors_reference(st, R, C_ab, C_bb, tie):
+    """align_mirrors' rules in numpy (its form before the compiled loop), for the test below."""
+    lab, X, S = st.labels, st.local, st.n_sticks
+    cnt = np.maximum(np.bincount(lab, minlength=S), 1).astype(float)
+    mean = np.stack([np.bincount(lab, weights=X[:, k], minlength=S) for k in range(3)], -1) / cnt[:, None]
+    Xc = X - mean[lab]
+    cov = np.zeros((S, 3, 3))
+    np.add.at(cov, lab, Xc[:, :, None] * Xc[:, None, :])
+    lam, V = np.linalg.eigh(cov)
+    lam = np.maximum(lam, 0.0)
+    flat = np.sqrt(lam[:, 0]) < U.FLAT_RATIO * np.sqrt(np.maximum(lam[:, 2], 1e-300))
+    idx = np.flatnonzero(flat & (np.bincount(lab, minlength=S) >= 3))
+    F = R.shape[1]
+    n = V[idx, :, 0]
+    Rk = R[idx]
+    H = np.eye(3)[None] - 2.0 * n[:, :, None] * n[:, None, :]
+    Rm = Rk[..., 0:1] * H[:, None, None, 0] + Rk[..., 1:2] * H[:, None, None, 1] + Rk[..., 2:3] * H[:, None, None, 2]
+    e0, e1 = U._rotation_energy(Rk, C_ab[idx], C_bb[idx]), U._rotation_energy(Rm, C_ab[idx], C_bb[idx])
+    tied = np.abs(e1 - e0) <= tie
+    rn = np.einsum("kfdj,kj->kfd", Rk, n)
+    long = np.linalg.norm(rn, axis=-1) >= 0.3
+    flip = np.zeros(tied.shape, bool)
+    flip[:, 1:] = (np.sum(rn[:, 1:] * rn[:, :-1], axis=-1) < 0) & long[:, 1:] & long[:, :-1]
+    count = np.cumsum(flip & tied, axis=1)
+    last = np.maximum.accumulate(np.where(~tied, np.arange(F)[None], -1), axis=1)
+    base = np.where(last >= 0, np.take_along_axis(count, np.maximum(last, 0), axis=1), 0)
+    odd = tied & ((count - base) % 2 == 1)
+    run = np.cumsum(~tied, axis=1) + (F + 1) * np.arange(len(idx))[:, None]
+    n_runs = (F + 1) * len(idx)
+    rid = run[tied]
+    keep = np.bincount(rid, weights=np.where(odd, e1, e0)[tied], minlength=n_runs)
+    other = np.bincount(rid, weights=np.where(odd, e0, e1)[tied], minlength=n_runs)
+    n_odd = np.bincount(rid, weights=odd[tied].astype(float), minlength=n_runs)
+    n_tied = np.bincount(rid, minlength=n_runs)
+    swap = (other < keep) | ((other == keep) & (n_tied - n_odd < n_odd))
+    odd = np.where(swap[run], tied & ~odd, odd)
+    out = R.copy()
+    out[idx] = np.where(odd[..., None, None], Rm, Rk)
+    changed = np.zeros(R.shape[:2], bool)
+    changed[idx] = odd
+    return flat, out, changed
+
+
+def test_compiled_mirror_alignment_matches_its_numpy_rules():
+    # align_mirrors and _principal_axes run in compiled loops (_rotation_kernels.mirror_runs,
+    # _point_kernels.stick_scatter): the same decisions as the rules in numpy on sticks of
+    # several shapes, with frames mirrored at random and tie limits from none to all frames.
+    rng = np.random.default_rng(21)
+    S, F, D = 4, 60, 2
+    sizes = np.array([5, 4, 6, 2])  # flat, planar, not flat, too few points to mirror
+    lab = np.repeat(np.arange(S), sizes)
+    local = rng.normal(size=(lab.size, 3))
+    local[lab == 0, 2] *= 0.05  # flat
+    local[lab == 1, 2] = 0.0  # exactly planar
+    local[lab == 3, 2] = 0.0
+    st = initial_state(normalise(rng.normal(size=(lab.size, F, D)))[0], lab, S, Priors(), np.random.default_rng(0))
+    st.local = local
+    rotvec = rng.normal(size=(S, 1, 3)) + np.cumsum(rng.normal(scale=0.05, size=(S, F, 3)), axis=1)
+    R0 = Rotation.from_rotvec(rotvec.reshape(-1, 3)).as_matrix().reshape(S, F, 3, 3)[:, :, :D]
+    noise = [0.0, 0.01, 0.3]
+    seen = set()
+    for trial in range(30):
+        b = local
+        a = np.einsum("sfdj,pj->spfd", R0, b) + noise[trial % 3] * rng.normal(size=(S, lab.size, F, D))
+        m = (lab[None, :] == np.arange(S)[:, None]).astype(float)  # (S, P)
+        C_ab = np.einsum("sp,spfd,pj->sfdj", m, a, b)
+        C_bb = np.broadcast_to(np.einsum("sp,pi,pj->sij", m, b, b)[:, None], (S, F, 3, 3)).copy()
+        want_flat, want, want_changed = _align_mirrors_reference(st, R0, C_ab, C_bb, 0.0)
+        R = R0.copy()
+        for s in np.flatnonzero(want_flat):
+            n = U._principal_axes(st)[0][s, 0, 0]
+            bad = rng.random(F) < rng.uniform(0.05, 0.6)
+            R[s, bad] = R[s, bad] @ (np.eye(3) - 2.0 * np.outer(n, n))
+        tie = float(rng.choice([-1.0, 0.0, 1e-3, 0.1, 1.0, 1e9]))
+        flat, want, want_changed = _align_mirrors_reference(st, R, C_ab, C_bb, tie)
+        assert np.array_equal(U._principal_axes(st)[1], flat)
+        got, changed = U.align_mirrors(st, R, C_ab, C_bb, tie)
+        assert np.array_equal(got, want)
+        if want_changed.any():
+            assert np.array_equal(changed, want_changed) and not changed[2:].any()
+            seen.add("changed")
+        else:
+            assert changed is None and got is R
+            seen.add("unchanged")
+    assert seen == {"changed", "unchanged"} and flat[:2].all() and not flat[2]
+
+
 def test_mirror_alignment_is_scoped_to_its_block():
     assert U._mirror_tie is None
     with pytest.raises(RuntimeError):

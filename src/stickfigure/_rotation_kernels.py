@@ -1,6 +1,6 @@
 """Compiled per-matrix loops behind :mod:`stickfigure.geometry`'s rotation energy,
 Newton step and quaternion Procrustes step, and of the EM's rotation-to-quaternion
-conversion.
+conversion and mirror alignment.
 
 EM evaluates these on every (stick, frame) pair in every sweep: thousands of 2x3
 and 3x3 problems at a time, each a few dozen flops. In numpy every operation on
@@ -380,3 +380,82 @@ def polar_rows2(C: np.ndarray, out: np.ndarray, ok: np.ndarray) -> None:
             c0, c1 = C[i, 0, k], C[i, 1, k]
             out[i, 0, k] = i00 * c0 + i01 * c1
             out[i, 1, k] = i01 * c0 + i11 * c1
+
+
+@nb.njit(nb.void(_I3, _I3, _I3, nb.int64, nb.types.Array(nb.int64, 1, "C", readonly=True), _I2, nb.float64,
+                 _A3, nb.bool_[:, ::1]), **_JIT)
+def mirror_runs(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, F: int, idx: np.ndarray, normal: np.ndarray,
+                tie: float, R_mirror: np.ndarray, odd: np.ndarray) -> None:
+    """The frames where each flat stick's mirror image continues its tied runs (``updates.align_mirrors``).
+
+    ``R``, ``C_ab`` (S F, D, 3) and ``C_bb`` (S F, 3, 3) hold every stick's frames in
+    order; ``idx`` (k,) the flat sticks, ``normal`` (k, 3) their planes' unit normals.
+    Writes ``R_mirror`` (k F, D, 3), each rotation times ``I - 2 n n^T``, and ``odd``
+    (k, F), where the mirror is to be taken. The rules and the arithmetic are those
+    of the numpy version this replaces, one stick at a time and one pass over its
+    frames (a run's choice once the run ends): the energies, products and sums in
+    the same order, so the same bits.
+    """
+    D = R.shape[1]
+    H = np.empty((3, 3))
+    e0 = np.empty(F)
+    e1 = np.empty(F)
+    rn = np.empty((F, D))
+    long = np.empty(F, dtype=np.bool_)
+    for kk in range(idx.shape[0]):
+        s = idx[kk]
+        for a in range(3):
+            for b in range(3):
+                H[a, b] = (1.0 if a == b else 0.0) - 2.0 * normal[kk, a] * normal[kk, b]
+        for f in range(F):
+            i = s * F + f
+            m = kk * F + f
+            for d in range(D):
+                for c in range(3):
+                    R_mirror[m, d, c] = R[i, d, 0] * H[0, c] + R[i, d, 1] * H[1, c] + R[i, d, 2] * H[2, c]
+            e0[f] = _energy_at(R, i, C_ab, C_bb, i)
+            e1[f] = _energy_at(R_mirror, m, C_ab, C_bb, i)
+            sq = 0.0
+            for d in range(D):
+                r = R[i, d, 0] * normal[kk, 0] + R[i, d, 1] * normal[kk, 1] + R[i, d, 2] * normal[kk, 2]
+                rn[f, d] = r
+                sq += r * r
+            long[f] = math.sqrt(sq) >= 0.3
+        # the parity of the projected normal's flips since the last untied frame; each run of tied
+        # frames then keeps it, or its complement where that has the lower total energy
+        parity = False
+        start = 0
+        sum_keep = 0.0
+        sum_other = 0.0
+        n_odd = 0
+        n_tied = 0
+        for f in range(F):
+            tied = abs(e1[f] - e0[f]) <= tie
+            if not tied:
+                parity = False
+                odd[kk, f] = False
+                start = f + 1
+                sum_keep = 0.0
+                sum_other = 0.0
+                n_odd = 0
+                n_tied = 0
+                continue
+            if f > 0 and long[f] and long[f - 1]:
+                dot = 0.0
+                for d in range(D):
+                    dot += rn[f, d] * rn[f - 1, d]
+                if dot < 0:
+                    parity = not parity
+            odd[kk, f] = parity
+            if parity:
+                sum_keep += e1[f]
+                sum_other += e0[f]
+                n_odd += 1
+            else:
+                sum_keep += e0[f]
+                sum_other += e1[f]
+            n_tied += 1
+            if f == F - 1 or not abs(e1[f + 1] - e0[f + 1]) <= tie:  # the run ends here
+                if sum_other < sum_keep or (sum_other == sum_keep and n_tied - n_odd < n_odd):
+                    for g in range(start, f + 1):
+                        odd[kk, g] = not odd[kk, g]

@@ -144,3 +144,38 @@ def row_sums(index: np.ndarray, x: np.ndarray, out: np.ndarray) -> None:
         j = index[e]
         for k in range(K):
             out[j, k] += x[e, k]
+
+
+@nb.njit(nb.void(_L, _I2, nb.float64[:, :, ::1]), **_JIT)
+def stick_scatter(labels: np.ndarray, local: np.ndarray, cov: np.ndarray) -> None:
+    """cov (S, 3, 3): each stick's scatter of its points' local coordinates about their mean.
+
+    Sums in point order, as the bincount / ``np.add.at`` version it replaces (the same bits).
+    """
+    S = cov.shape[0]
+    P = local.shape[0]
+    mean = np.zeros((S, 3))
+    cnt = np.zeros(S)
+    for p in range(P):
+        cnt[labels[p]] += 1.0
+        for k in range(3):
+            mean[labels[p], k] += local[p, k]
+    for s in range(S):
+        c = max(cnt[s], 1.0)
+        for k in range(3):
+            mean[s, k] = mean[s, k] / c
+    cov[:] = 0.0
+    for p in range(P):
+        s = labels[p]
+        x0 = local[p, 0] - mean[s, 0]
+        x1 = local[p, 1] - mean[s, 1]
+        x2 = local[p, 2] - mean[s, 2]
+        cov[s, 0, 0] += x0 * x0
+        cov[s, 0, 1] += x0 * x1
+        cov[s, 0, 2] += x0 * x2
+        cov[s, 1, 0] += x1 * x0
+        cov[s, 1, 1] += x1 * x1
+        cov[s, 1, 2] += x1 * x2
+        cov[s, 2, 0] += x2 * x0
+        cov[s, 2, 1] += x2 * x1
+        cov[s, 2, 2] += x2 * x2

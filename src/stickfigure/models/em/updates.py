@@ -415,13 +415,9 @@ def _principal_axes(st: StickState) -> tuple[np.ndarray, np.ndarray]:
     flat : ndarray of bool, shape (S,)
         Smallest spread below ``FLAT_RATIO`` times the largest.
     """
-    S = st.n_sticks
-    X, lab = st.local, st.labels
-    cnt = np.maximum(np.bincount(lab, minlength=S), 1).astype(float)
-    mean = np.stack([np.bincount(lab, weights=X[:, k], minlength=S) for k in range(3)], -1) / cnt[:, None]
-    Xc = X - mean[lab]
-    cov = np.zeros((S, 3, 3))
-    np.add.at(cov, lab, Xc[:, :, None] * Xc[:, None, :])
+    cov = np.empty((st.n_sticks, 3, 3))
+    _pk.stick_scatter(np.ascontiguousarray(st.labels, dtype=np.int64), np.ascontiguousarray(st.local, dtype=float),
+                      cov)
     lam, V = np.linalg.eigh(cov)
     lam = np.maximum(lam, 0.0)
     flat = np.sqrt(lam[:, 0]) < FLAT_RATIO * np.sqrt(np.maximum(lam[:, 2], 1e-300))
@@ -525,8 +521,8 @@ def align_mirrors(st: StickState, R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndar
     negative while both are at least 0.3 long (a true motion turns it by less
     than 90 degrees between frames; through a frame where the plane faces the
     camera, ``R n`` is short and its sign is left alone). Each run of tied
-    frames is made continuous within itself (the parity of the flips, a
-    cumulative sum: no loop over frames), in whichever of its two consistent
+    frames is made continuous within itself (the parity of the flips since the
+    run began), in whichever of its two consistent
     images has the lower total energy, and where those tie, the one that flips
     fewer frames. Continuing the frame before the run instead carried one
     frame's wrong image over the whole run: on a 60-frame random figure the fit
@@ -535,6 +531,10 @@ def align_mirrors(st: StickState, R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndar
     each frame it flips may lower the objective by up to ``tie / 2`` (the
     energy is twice a log-likelihood), so with alignment on the motion update is
     not monotone by that much.
+
+    The rules run one stick at a time in one compiled pass over its frames
+    (:func:`stickfigure._rotation_kernels.mirror_runs`; the numpy form took 1.0 ms
+    a call on the human-sized figure's 15 sticks x 400 frames, 0.18 ms now, the same bits).
 
     Parameters
     ----------
@@ -558,39 +558,18 @@ def align_mirrors(st: StickState, R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndar
     F = R.shape[1]
     if idx.size == 0 or F < 2:
         return R, None
-    n = axes[idx, 0, 0]  # (k, 3): the minor axis, the plane's normal
-    H = np.eye(3)[None] - 2.0 * n[:, :, None] * n[:, None, :]
-    Rk = R[idx]
-    # R H by elementwise products summed in einsum's order (the same bits, in half the time of the einsum)
-    Rm = Rk[..., 0:1] * H[:, None, None, 0] + Rk[..., 1:2] * H[:, None, None, 1] + Rk[..., 2:3] * H[:, None, None, 2]
-    e0 = _rotation_energy(Rk, C_ab[idx], C_bb[idx])
-    e1 = _rotation_energy(Rm, C_ab[idx], C_bb[idx])
-    tied = np.abs(e1 - e0) <= tie
-    rn = np.einsum("kfdj,kj->kfd", Rk, n)
-    long = np.linalg.norm(rn, axis=-1) >= 0.3
-    flip = np.zeros(tied.shape, bool)
-    flip[:, 1:] = (np.sum(rn[:, 1:] * rn[:, :-1], axis=-1) < 0) & long[:, 1:] & long[:, :-1]
-    count = np.cumsum(flip & tied, axis=1)
-    # the count at the last untied frame at or before each frame (0 before the first)
-    last = np.maximum.accumulate(np.where(~tied, np.arange(F)[None], -1), axis=1)
-    base = np.where(last >= 0, np.take_along_axis(count, np.maximum(last, 0), axis=1), 0)
-    odd = tied & ((count - base) % 2 == 1)
-    # A run of tied frames is made continuous within itself, in whichever of its two consistent
-    # images has the lower total energy (ties: the one that flips fewer frames): continuing an
-    # arbitrary first frame would carry that frame's mirror over the run.
-    run = np.cumsum(~tied, axis=1) + (F + 1) * np.arange(len(idx))[:, None]  # (k, F) run ids
-    e_keep = np.where(odd, e1, e0)  # the run continuous with its first frame
-    e_other = np.where(odd, e0, e1)  # ... with the first frame mirrored
-    n_runs = (F + 1) * len(idx)
-    rid = run[tied]
-    sum_keep = np.bincount(rid, weights=e_keep[tied], minlength=n_runs)
-    sum_other = np.bincount(rid, weights=e_other[tied], minlength=n_runs)
-    n_odd = np.bincount(rid, weights=odd[tied].astype(float), minlength=n_runs)
-    n_tied = np.bincount(rid, minlength=n_runs)
-    other = (sum_other < sum_keep) | ((sum_other == sum_keep) & (n_tied - n_odd < n_odd))
-    odd = np.where(other[run], tied & ~odd, odd)
+    n = np.ascontiguousarray(axes[idx, 0, 0])  # (k, 3): the minor axis, the plane's normal
+    S, _, D = R.shape[:3]
+    flat_R = np.ascontiguousarray(R, dtype=float).reshape(S * F, D, 3)
+    Rm = np.empty((idx.size * F, D, 3))
+    odd = np.empty((idx.size, F), dtype=bool)
+    _rk.mirror_runs(flat_R, np.ascontiguousarray(C_ab, dtype=float).reshape(S * F, D, 3),
+                    np.ascontiguousarray(C_bb, dtype=float).reshape(S * F, 3, 3), F, idx.astype(np.int64), n,
+                    float(tie), Rm, odd)
     if not odd.any():
         return R, None
+    Rm = Rm.reshape(idx.size, F, D, 3)
+    Rk = R[idx]
     R = R.copy()
     R[idx] = np.where(odd[..., None, None], Rm, Rk)
     changed = np.zeros(R.shape[:2], bool)
