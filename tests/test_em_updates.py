@@ -924,6 +924,73 @@ def test_compiled_mirror_alignment_matches_its_numpy_rules():
     assert seen == {"changed", "unchanged"} and flat[:2].all() and not flat[2]
 
 
+def _best_rotations_reference(R, C_ab, C_bb, axes, flat, use_polar, n_newton, only_mirrors):
+    """best_rotations' search in numpy (its form before the compiled loop), for the test below."""
+    batch = R.shape[:-2]
+    best, best_e = R, U._rotation_energy(R, C_ab, C_bb)
+    if not only_mirrors:
+        for _ in range(n_newton):
+            best, best_e = U.newton_step(best, C_ab, C_bb, best_e, return_energy=True)
+    candidates = [(None, U._polar_rows(C_ab))] if use_polar else []
+    mask = np.broadcast_to(flat[:, None], batch)
+    ax = np.broadcast_to(axes, batch + (3, 3))[mask]
+    for k in range(2):
+        n = ax[..., k, :]
+        candidates.append((mask, R[mask] @ (np.eye(3) - 2.0 * n[..., :, None] * n[..., None, :])))
+    n, ratio = U._plane_normal(C_bb)
+    mask = ratio < U.FLAT_RATIO ** 2
+    n = n[mask]
+    candidates.append((mask, R[mask] @ (np.eye(3) - 2.0 * n[..., :, None] * n[..., None, :])))
+    for sel, X in candidates:
+        Ca, Cb = (C_ab, C_bb) if sel is None else (C_ab[sel], C_bb[sel])
+        e = U._rotation_energy(X, Ca, Cb)
+        for _ in range(n_newton):
+            X, e = U.newton_step(X, Ca, Cb, e, return_energy=True)
+        if sel is None:
+            take = e < best_e
+            best, best_e = np.where(take[..., None, None], X, best), np.where(take, e, best_e)
+        else:
+            take = e < best_e[sel]
+            best, best_e = best.copy(), best_e.copy()
+            best[sel] = np.where(take[..., None, None], X, best[sel])
+            best_e[sel] = np.where(take, e, best_e[sel])
+    return best
+
+
+def test_compiled_rotation_search_matches_its_numpy_form():
+    # best_rotations polishes its starts and keeps the best in a compiled loop
+    # (_rotation_kernels.best_rotations); the starts, their order and the rule are the numpy
+    # form's, so the rotations are the same bits. Sticks flat and not; frames where the sources
+    # are planar (a mirror start of their own) and not; rotations far from and near the minimum.
+    rng = np.random.default_rng(8)
+    S, F, D = 3, 50, 2
+    B = rng.normal(size=(S, F, 3, 6))
+    B[0, :, 2] *= 0.05  # a flat stick
+    B[1, :20, 2] = 0.0  # planar sources in some frames
+    C_bb = B @ np.swapaxes(B, -1, -2)
+    R_true = Rotation.random(S * F, random_state=6).as_matrix().reshape(S, F, 3, 3)[:, :, :D]
+    C_ab = R_true @ C_bb + 0.05 * rng.normal(size=(S, F, D, 3))
+    R = Rotation.random(S * F, random_state=7).as_matrix().reshape(S, F, 3, 3)[:, :, :D]
+    near = rng.random((S, F)) < 0.5
+    R[near] = R_true[near]
+    axes = np.swapaxes(np.linalg.eigh(C_bb[:, 0])[1], -1, -2)[:, None]  # (S, 1, 3, 3), rows by spread
+    flat = np.array([True, False, True])
+    for use_polar in (False, True):
+        for n_newton, only_mirrors in ((2, False), (1, True), (0, False)):
+            want = _best_rotations_reference(R, C_ab, C_bb, axes, flat, use_polar, n_newton, only_mirrors)
+            got = U.best_rotations(R, C_ab, C_bb, axes, flat, use_polar=use_polar, n_newton=n_newton,
+                                   only_mirrors=only_mirrors)
+            assert np.array_equal(got, want)
+            assert np.all(U._rotation_energy(got, C_ab, C_bb) <= U._rotation_energy(R, C_ab, C_bb))
+    # the starts changed something (a test that cannot fail otherwise)
+    assert not np.array_equal(want, R)
+    # a subset of sticks, as update_motions passes them
+    sub = np.array([0, 2])
+    got = U.best_rotations(R[sub], C_ab[sub], C_bb[sub], axes[sub], flat[sub], use_polar=False, n_newton=1)
+    want = _best_rotations_reference(R[sub], C_ab[sub], C_bb[sub], axes[sub], flat[sub], False, 1, False)
+    assert np.array_equal(got, want)
+
+
 def test_mirror_alignment_is_scoped_to_its_block():
     assert U._mirror_tie is None
     with pytest.raises(RuntimeError):

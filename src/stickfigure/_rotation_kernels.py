@@ -72,6 +72,97 @@ def _min_eig_sym3(H: np.ndarray) -> float:
     return q + 2.0 * p * math.cos(math.acos(r) / 3.0 + 2.0 * math.pi / 3.0)
 
 
+@nb.njit(inline="always", **_JIT)
+def _newton_at(R: np.ndarray, r: int, C_ab: np.ndarray, C_bb: np.ndarray, i: int, e_old: float,
+               R_out: np.ndarray, o: int, P: np.ndarray, N: np.ndarray, CP: np.ndarray, H: np.ndarray,
+               K: np.ndarray, Q: np.ndarray, Rn: np.ndarray, g: np.ndarray) -> float:
+    # One damped Newton step on R[r] against problem i (C_ab[i], C_bb[i]) from its energy e_old:
+    # writes the step, or R[r] where the step does not lower the energy, to R_out[o] and returns
+    # that rotation's energy. P ... g are scratch (3x3, Rn (1, D, 3), g (3,)).
+    D = R.shape[1]
+    for j in range(3):
+        for k in range(3):
+            pj = 0.0
+            nj = 0.0
+            for row in range(D):
+                pj += R[r, row, j] * R[r, row, k]
+                nj += C_ab[i, row, j] * R[r, row, k]
+            P[j, k] = pj
+            N[j, k] = nj
+    for j in range(3):
+        for k in range(3):
+            CP[j, k] = C_bb[i, j, 0] * P[0, k] + C_bb[i, j, 1] * P[1, k] + C_bb[i, j, 2] * P[2, k]
+    # g = vee(CP - PC) - 2 vee(N), with PC = CP^T and vee(M) = (M12 - M21, M20 - M02, M01 - M10)
+    g[0] = 2.0 * (CP[1, 2] - CP[2, 1]) - 2.0 * (N[1, 2] - N[2, 1])
+    g[1] = 2.0 * (CP[2, 0] - CP[0, 2]) - 2.0 * (N[2, 0] - N[0, 2])
+    g[2] = 2.0 * (CP[0, 1] - CP[1, 0]) - 2.0 * (N[0, 1] - N[1, 0])
+    trC = C_bb[i, 0, 0] + C_bb[i, 1, 1] + C_bb[i, 2, 2]
+    trN = N[0, 0] + N[1, 1] + N[2, 2]
+    trCP = CP[0, 0] + CP[1, 1] + CP[2, 2]
+    diag = 2.0 * trN + 2.0 * D * trC - 4.0 * trCP
+    hmax = 0.0
+    for j in range(3):
+        for k in range(3):
+            h = (3.0 * (CP[j, k] + CP[k, j]) - (2.0 * D) * C_bb[i, j, k] - 2.0 * trC * P[j, k]
+                 - (N[j, k] + N[k, j]))
+            if j == k:
+                h += diag
+            H[j, k] = h
+            hmax = max(hmax, abs(h))
+    # The shift needs the smallest eigenvalue only where H may not be positive definite:
+    # where the leading minors are positive and lambda_min >= det / tr^2 (lambda_max <= tr)
+    # exceeds 1e-8 tr, far above the closed form's rounding, max(0, -lambda_min) is 0 as
+    # the closed form would give it, without its acos and cos.
+    m1 = H[0, 0]
+    m2 = H[0, 0] * H[1, 1] - H[0, 1] * H[1, 0]
+    m3 = (H[0, 0] * (H[1, 1] * H[2, 2] - H[1, 2] * H[2, 1]) - H[0, 1] * (H[1, 0] * H[2, 2] - H[1, 2] * H[2, 0])
+          + H[0, 2] * (H[1, 0] * H[2, 1] - H[1, 1] * H[2, 0]))
+    trH = H[0, 0] + H[1, 1] + H[2, 2]
+    if m1 > 0.0 and m2 > 0.0 and m3 > 1e-8 * trH * trH * trH:
+        mu = 0.0 + 1e-6 * hmax + 1e-300
+    else:
+        mu = max(0.0, -_min_eig_sym3(H)) + 1e-6 * hmax + 1e-300
+    for j in range(3):
+        H[j, j] += mu
+    # w = H^-1 (-g) by cofactors
+    a, b, c = H[0, 0], H[0, 1], H[0, 2]
+    d, e, f = H[1, 0], H[1, 1], H[1, 2]
+    gg, h, k9 = H[2, 0], H[2, 1], H[2, 2]
+    A, B, C = e * k9 - f * h, f * gg - d * k9, d * h - e * gg
+    det = a * A + b * B + c * C
+    safe = det if det != 0 else 1.0
+    x0 = (A * -g[0] + (c * h - b * k9) * -g[1] + (b * f - c * e) * -g[2]) / safe
+    x1 = (B * -g[0] + (a * k9 - c * gg) * -g[1] + (c * d - a * f) * -g[2]) / safe
+    x2 = (C * -g[0] + (b * gg - a * h) * -g[1] + (a * e - b * d) * -g[2]) / safe
+    if not (math.isfinite(x0) and math.isfinite(x1) and math.isfinite(x2)):
+        x0 = x1 = x2 = 0.0
+    # Long steps leave the region where the quadratic model holds: at most 0.5 rad.
+    th = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+    cap = min(1.0, 0.5 / max(th, 1e-300))
+    x0, x1, x2, th = x0 * cap, x1 * cap, x2 * cap, th * cap
+    # exp([w]_x) by Rodrigues' formula (series where theta is tiny)
+    if th < 1e-6:
+        s1, s2 = 1.0 - th * th / 6.0, 0.5 - th * th / 24.0
+    else:
+        s1, s2 = math.sin(th) / th, (1.0 - math.cos(th)) / (th * th)
+    K[0, 0], K[0, 1], K[0, 2] = 0.0, -x2, x1
+    K[1, 0], K[1, 1], K[1, 2] = x2, 0.0, -x0
+    K[2, 0], K[2, 1], K[2, 2] = -x1, x0, 0.0
+    for j in range(3):
+        for k in range(3):
+            kk = K[j, 0] * K[0, k] + K[j, 1] * K[1, k] + K[j, 2] * K[2, k]
+            Q[j, k] = (1.0 if j == k else 0.0) + s1 * K[j, k] + s2 * kk
+    for row in range(D):
+        for k in range(3):
+            Rn[0, row, k] = R[r, row, 0] * Q[0, k] + R[r, row, 1] * Q[1, k] + R[r, row, 2] * Q[2, k]
+    e_new = _energy_at(Rn, 0, C_ab, C_bb, i)
+    take = e_new < e_old
+    for row in range(D):
+        for k in range(3):
+            R_out[o, row, k] = Rn[0, row, k] if take else R[r, row, k]
+    return e_new if take else e_old
+
+
 @nb.njit(nb.void(_I3, _I3, _I3, _I1, _A3, _A1), **_JIT)
 def rotation_newton_step(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, e_old: np.ndarray,
                          R_out: np.ndarray, e_out: np.ndarray) -> None:
@@ -86,87 +177,7 @@ def rotation_newton_step(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, e_ol
     Rn = np.empty((1, D, 3))  # the trial rotation, as a batch of one for _energy_at
     g = np.empty(3)
     for i in range(R.shape[0]):
-        for j in range(3):
-            for k in range(3):
-                pj = 0.0
-                nj = 0.0
-                for a in range(D):
-                    pj += R[i, a, j] * R[i, a, k]
-                    nj += C_ab[i, a, j] * R[i, a, k]
-                P[j, k] = pj
-                N[j, k] = nj
-        for j in range(3):
-            for k in range(3):
-                CP[j, k] = C_bb[i, j, 0] * P[0, k] + C_bb[i, j, 1] * P[1, k] + C_bb[i, j, 2] * P[2, k]
-        # g = vee(CP - PC) - 2 vee(N), with PC = CP^T and vee(M) = (M12 - M21, M20 - M02, M01 - M10)
-        g[0] = 2.0 * (CP[1, 2] - CP[2, 1]) - 2.0 * (N[1, 2] - N[2, 1])
-        g[1] = 2.0 * (CP[2, 0] - CP[0, 2]) - 2.0 * (N[2, 0] - N[0, 2])
-        g[2] = 2.0 * (CP[0, 1] - CP[1, 0]) - 2.0 * (N[0, 1] - N[1, 0])
-        trC = C_bb[i, 0, 0] + C_bb[i, 1, 1] + C_bb[i, 2, 2]
-        trN = N[0, 0] + N[1, 1] + N[2, 2]
-        trCP = CP[0, 0] + CP[1, 1] + CP[2, 2]
-        diag = 2.0 * trN + 2.0 * D * trC - 4.0 * trCP
-        hmax = 0.0
-        for j in range(3):
-            for k in range(3):
-                h = (3.0 * (CP[j, k] + CP[k, j]) - (2.0 * D) * C_bb[i, j, k] - 2.0 * trC * P[j, k]
-                     - (N[j, k] + N[k, j]))
-                if j == k:
-                    h += diag
-                H[j, k] = h
-                hmax = max(hmax, abs(h))
-        # The shift needs the smallest eigenvalue only where H may not be positive definite:
-        # where the leading minors are positive and lambda_min >= det / tr^2 (lambda_max <= tr)
-        # exceeds 1e-8 tr, far above the closed form's rounding, max(0, -lambda_min) is 0 as
-        # the closed form would give it, without its acos and cos.
-        m1 = H[0, 0]
-        m2 = H[0, 0] * H[1, 1] - H[0, 1] * H[1, 0]
-        m3 = (H[0, 0] * (H[1, 1] * H[2, 2] - H[1, 2] * H[2, 1]) - H[0, 1] * (H[1, 0] * H[2, 2] - H[1, 2] * H[2, 0])
-              + H[0, 2] * (H[1, 0] * H[2, 1] - H[1, 1] * H[2, 0]))
-        trH = H[0, 0] + H[1, 1] + H[2, 2]
-        if m1 > 0.0 and m2 > 0.0 and m3 > 1e-8 * trH * trH * trH:
-            mu = 0.0 + 1e-6 * hmax + 1e-300
-        else:
-            mu = max(0.0, -_min_eig_sym3(H)) + 1e-6 * hmax + 1e-300
-        for j in range(3):
-            H[j, j] += mu
-        # w = H^-1 (-g) by cofactors
-        a, b, c = H[0, 0], H[0, 1], H[0, 2]
-        d, e, f = H[1, 0], H[1, 1], H[1, 2]
-        gg, h, k9 = H[2, 0], H[2, 1], H[2, 2]
-        A, B, C = e * k9 - f * h, f * gg - d * k9, d * h - e * gg
-        det = a * A + b * B + c * C
-        safe = det if det != 0 else 1.0
-        x0 = (A * -g[0] + (c * h - b * k9) * -g[1] + (b * f - c * e) * -g[2]) / safe
-        x1 = (B * -g[0] + (a * k9 - c * gg) * -g[1] + (c * d - a * f) * -g[2]) / safe
-        x2 = (C * -g[0] + (b * gg - a * h) * -g[1] + (a * e - b * d) * -g[2]) / safe
-        if not (math.isfinite(x0) and math.isfinite(x1) and math.isfinite(x2)):
-            x0 = x1 = x2 = 0.0
-        # Long steps leave the region where the quadratic model holds: at most 0.5 rad.
-        th = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
-        cap = min(1.0, 0.5 / max(th, 1e-300))
-        x0, x1, x2, th = x0 * cap, x1 * cap, x2 * cap, th * cap
-        # exp([w]_x) by Rodrigues' formula (series where theta is tiny)
-        if th < 1e-6:
-            s1, s2 = 1.0 - th * th / 6.0, 0.5 - th * th / 24.0
-        else:
-            s1, s2 = math.sin(th) / th, (1.0 - math.cos(th)) / (th * th)
-        K[0, 0], K[0, 1], K[0, 2] = 0.0, -x2, x1
-        K[1, 0], K[1, 1], K[1, 2] = x2, 0.0, -x0
-        K[2, 0], K[2, 1], K[2, 2] = -x1, x0, 0.0
-        for j in range(3):
-            for k in range(3):
-                kk = K[j, 0] * K[0, k] + K[j, 1] * K[1, k] + K[j, 2] * K[2, k]
-                Q[j, k] = (1.0 if j == k else 0.0) + s1 * K[j, k] + s2 * kk
-        for r in range(D):
-            for k in range(3):
-                Rn[0, r, k] = R[i, r, 0] * Q[0, k] + R[i, r, 1] * Q[1, k] + R[i, r, 2] * Q[2, k]
-        e_new = _energy_at(Rn, 0, C_ab, C_bb, i)
-        take = e_new < e_old[i]
-        for r in range(D):
-            for k in range(3):
-                R_out[i, r, k] = Rn[0, r, k] if take else R[i, r, k]
-        e_out[i] = e_new if take else e_old[i]
+        e_out[i] = _newton_at(R, i, C_ab, C_bb, i, e_old[i], R_out, i, P, N, CP, H, K, Q, Rn, g)
 
 
 @nb.njit(nb.void(_I2, _I3, _I3, nb.int64, nb.int64, _A3, _A2), **_JIT)
@@ -316,6 +327,36 @@ def rot_to_quat(R: np.ndarray, out: np.ndarray, ok: np.ndarray) -> None:
         out[n, 3] = v2 / nrm
 
 
+@nb.njit(inline="always", **_JIT)
+def _plane_normal_at(C: np.ndarray, i: int, normal: np.ndarray, M: np.ndarray, Cp: np.ndarray, Cn: np.ndarray,
+                     cand: np.ndarray) -> float:
+    # Writes into normal (3,) the unit eigenvector of C[i]'s smallest eigenvalue and returns
+    # lambda_min / lambda_max; M ... cand are 3x3 scratch.
+    for a in range(3):
+        for b in range(3):
+            Cp[a, b] = C[i, a, b]
+            Cn[a, b] = -C[i, a, b]
+    lam_min = _min_eig_sym3(Cp)
+    lam_max = -_min_eig_sym3(Cn)
+    for a in range(3):
+        for b in range(3):
+            M[a, b] = C[i, a, b] - lam_min * (1.0 if a == b else 0.0)
+    for r, (u, v) in enumerate(((0, 1), (0, 2), (1, 2))):
+        cand[r, 0] = M[u, 1] * M[v, 2] - M[u, 2] * M[v, 1]
+        cand[r, 1] = M[u, 2] * M[v, 0] - M[u, 0] * M[v, 2]
+        cand[r, 2] = M[u, 0] * M[v, 1] - M[u, 1] * M[v, 0]
+    best = -1.0
+    k = 0
+    for r in range(3):
+        nr = math.sqrt(cand[r, 0] * cand[r, 0] + cand[r, 1] * cand[r, 1] + cand[r, 2] * cand[r, 2])
+        if nr > best:
+            best, k = nr, r
+    d = max(best, 1e-300)
+    for b in range(3):
+        normal[b] = cand[k, b] / d
+    return lam_min / max(lam_max, 1e-300)
+
+
 @nb.njit(nb.void(_I3, _A2, _A1), **_JIT)
 def plane_normals(C: np.ndarray, normal: np.ndarray, ratio: np.ndarray) -> None:
     """Unit eigenvector of the smallest eigenvalue of symmetric C[i] (3, 3), and lambda_min / lambda_max.
@@ -328,29 +369,7 @@ def plane_normals(C: np.ndarray, normal: np.ndarray, ratio: np.ndarray) -> None:
     Cn = np.empty((3, 3))
     cand = np.empty((3, 3))
     for i in range(C.shape[0]):
-        for a in range(3):
-            for b in range(3):
-                Cp[a, b] = C[i, a, b]
-                Cn[a, b] = -C[i, a, b]
-        lam_min = _min_eig_sym3(Cp)
-        lam_max = -_min_eig_sym3(Cn)
-        for a in range(3):
-            for b in range(3):
-                M[a, b] = C[i, a, b] - lam_min * (1.0 if a == b else 0.0)
-        for r, (u, v) in enumerate(((0, 1), (0, 2), (1, 2))):
-            cand[r, 0] = M[u, 1] * M[v, 2] - M[u, 2] * M[v, 1]
-            cand[r, 1] = M[u, 2] * M[v, 0] - M[u, 0] * M[v, 2]
-            cand[r, 2] = M[u, 0] * M[v, 1] - M[u, 1] * M[v, 0]
-        best = -1.0
-        k = 0
-        for r in range(3):
-            nr = math.sqrt(cand[r, 0] * cand[r, 0] + cand[r, 1] * cand[r, 1] + cand[r, 2] * cand[r, 2])
-            if nr > best:
-                best, k = nr, r
-        d = max(best, 1e-300)
-        for b in range(3):
-            normal[i, b] = cand[k, b] / d
-        ratio[i] = lam_min / max(lam_max, 1e-300)
+        ratio[i] = _plane_normal_at(C, i, normal[i], M, Cp, Cn, cand)
 
 
 @nb.njit(nb.void(_I3, _A3, nb.bool_[::1]), **_JIT)
@@ -459,3 +478,50 @@ def mirror_runs(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, F: int, idx: 
                 if sum_other < sum_keep or (sum_other == sum_keep and n_tied - n_odd < n_odd):
                     for g in range(start, f + 1):
                         odd[kk, g] = not odd[kk, g]
+
+
+@nb.njit(nb.void(_I3, _I3, _I3, nb.types.Array(nb.float64, 4, "C", readonly=True),
+                 nb.types.Array(nb.bool_, 2, "C", readonly=True), nb.int64, nb.bool_, _A3), **_JIT)
+def best_rotations(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, starts: np.ndarray, has: np.ndarray,
+                   n_newton: int, polish_current: bool, R_out: np.ndarray) -> None:
+    """The multi-start rotation search of ``models/em/updates.best_rotations``, one problem at a time.
+
+    Per problem i: ``R[i]``, polished by ``n_newton`` Newton steps where
+    ``polish_current``; then each start ``starts[k, i]`` (K, N, D, 3) where ``has[k, i]``,
+    in order of k, polished by ``n_newton`` steps and taken where its energy is
+    strictly lower than the best so far. The starts are made by the caller (the
+    same bits as the numpy form); what this loop saves is the batch's passes over
+    memory and its gathers and scatters per start.
+    """
+    D = R.shape[1]
+    P = np.empty((3, 3))
+    N = np.empty((3, 3))
+    CP = np.empty((3, 3))
+    H = np.empty((3, 3))
+    K = np.empty((3, 3))
+    Q = np.empty((3, 3))
+    Rn = np.empty((1, D, 3))
+    g = np.empty(3)
+    X = np.empty((1, D, 3))
+    for i in range(R.shape[0]):
+        for row in range(D):
+            for c in range(3):
+                R_out[i, row, c] = R[i, row, c]
+        best_e = _energy_at(R_out, i, C_ab, C_bb, i)
+        if polish_current:
+            for _ in range(n_newton):
+                best_e = _newton_at(R_out, i, C_ab, C_bb, i, best_e, R_out, i, P, N, CP, H, K, Q, Rn, g)
+        for k in range(starts.shape[0]):
+            if not has[k, i]:
+                continue
+            for row in range(D):
+                for c in range(3):
+                    X[0, row, c] = starts[k, i, row, c]
+            e = _energy_at(X, 0, C_ab, C_bb, i)
+            for _ in range(n_newton):
+                e = _newton_at(X, 0, C_ab, C_bb, i, e, X, 0, P, N, CP, H, K, Q, Rn, g)
+            if e < best_e:
+                best_e = e
+                for row in range(D):
+                    for c in range(3):
+                        R_out[i, row, c] = X[0, row, c]
