@@ -991,6 +991,28 @@ def test_compiled_rotation_search_matches_its_numpy_form():
     assert np.array_equal(got, want)
 
 
+def test_keep_lower_selects_as_numpy_where():
+    # update_motions keeps each Procrustes step only where its energy is not above the old one's,
+    # in one compiled pass (_keep_lower): numpy's `new <= old` and np.where, NaN keeping the old.
+    rng = np.random.default_rng(4)
+    S, F, D = 3, 40, 2
+    B = rng.normal(size=(S, F, 3, 5))
+    C_bb = B @ np.swapaxes(B, -1, -2)
+    C_ab = rng.normal(size=(S, F, D, 3))
+    R_old = Rotation.random(S * F, random_state=1).as_matrix().reshape(S, F, 3, 3)[:, :, :D]
+    R_new = Rotation.random(S * F, random_state=2).as_matrix().reshape(S, F, 3, 3)[:, :, :D]
+    R_new[0, :5] = R_old[0, :5]  # equal energies: the new is kept
+    R_new[1, 0, 0, 0] = np.nan
+    q_old, q_new = rng.normal(size=(S, F, 4)), rng.normal(size=(S, F, 4))
+    old, new = U._rotation_energy(R_old, C_ab, C_bb), U._rotation_energy(R_new, C_ab, C_bb)
+    keep = new <= old
+    assert 0 < keep.sum() < keep.size and not keep[1, 0]
+    R, q, e = U._keep_lower(R_old, q_old, R_new, q_new, C_ab, C_bb)
+    assert np.array_equal(R, np.where(keep[..., None, None], R_new, R_old), equal_nan=True)
+    assert np.array_equal(q, np.where(keep[..., None], q_new, q_old))
+    assert np.array_equal(e, old)
+
+
 def test_mirror_alignment_is_scoped_to_its_block():
     assert U._mirror_tie is None
     with pytest.raises(RuntimeError):

@@ -525,3 +525,24 @@ def best_rotations(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, starts: np
                 for row in range(D):
                     for c in range(3):
                         R_out[i, row, c] = X[0, row, c]
+
+
+@nb.njit(nb.void(_I3, _I2, _I3, _I2, _I3, _I3, _A3, _A2, _A1), **_JIT)
+def keep_lower(R_old: np.ndarray, q_old: np.ndarray, R_new: np.ndarray, q_new: np.ndarray, C_ab: np.ndarray,
+               C_bb: np.ndarray, R_out: np.ndarray, q_out: np.ndarray, e_old: np.ndarray) -> None:
+    """R_out, q_out: the new rotation and quaternion where its energy is not above the old one's, else the old.
+
+    ``e_old`` gets the old rotations' energies (``models/em/updates.update_motions`` uses them
+    again); the comparison is numpy's ``new <= old`` (False with a NaN: the old is kept).
+    """
+    D = R_old.shape[1]
+    for i in range(R_old.shape[0]):
+        eo = _energy_at(R_old, i, C_ab, C_bb, i)
+        en = _energy_at(R_new, i, C_ab, C_bb, i)
+        e_old[i] = eo
+        keep = en <= eo
+        for row in range(D):
+            for c in range(3):
+                R_out[i, row, c] = R_new[i, row, c] if keep else R_old[i, row, c]
+        for c in range(4):
+            q_out[i, c] = q_new[i, c] if keep else q_old[i, c]

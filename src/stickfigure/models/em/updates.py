@@ -576,6 +576,23 @@ def align_mirrors(st: StickState, R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndar
     return R, changed
 
 
+def _keep_lower(R_old: np.ndarray, q_old: np.ndarray, R_new: np.ndarray, q_new: np.ndarray, C_ab: np.ndarray,
+                C_bb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The new rotations (S, F, D, 3) and quaternions (S, F, 4) where their energy is not above the old, else the old.
+
+    Also returns the old rotations' energies (S, F). One compiled pass
+    (:func:`stickfigure._rotation_kernels.keep_lower`) for two energies and two selections.
+    """
+    batch, Ro, Ca, Cb = flat_rotation_batch(R_old, C_ab, C_bb)
+    D = Ro.shape[1]
+    Rn = np.ascontiguousarray(np.broadcast_to(R_new, batch + (D, 3)), dtype=float).reshape(-1, D, 3)
+    qo = np.ascontiguousarray(np.broadcast_to(q_old, batch + (4,)), dtype=float).reshape(-1, 4)
+    qn = np.ascontiguousarray(np.broadcast_to(q_new, batch + (4,)), dtype=float).reshape(-1, 4)
+    R_out, q_out, e_old = np.empty_like(Ro), np.empty_like(qo), np.empty(Ro.shape[0])
+    _rk.keep_lower(Ro, qo, Rn, qn, Ca, Cb, R_out, q_out, e_old)
+    return R_out.reshape(batch + (D, 3)), q_out.reshape(batch + (4,)), e_old.reshape(batch)
+
+
 def update_motions(st: StickState, obs: Observations, *, n_procrustes: int = 1, newton: bool = False,
                    global_search: bool = False, sticks: np.ndarray | None = None, use_polar: bool = True,
                    hold: np.ndarray | None | str = "auto", n_newton: int = 2, only_mirrors: bool = False,
@@ -627,11 +644,7 @@ def update_motions(st: StickState, obs: Observations, *, n_procrustes: int = 1, 
     a_bar, b_bar, C_ab, C_bb = _motion_statistics(st, obs, collapse, kappa, lam)
     q0 = st._quat if st._quat is not None and st._quat_of is st.rot else rot_to_quat(complete_rotation(st.rot))
     R_new, q_new = procrustes_step(st.rot, C_ab, C_bb, n_outer=n_procrustes, quat=q0)
-    old = _rotation_energy(st.rot, C_ab, C_bb)
-    new = _rotation_energy(R_new, C_ab, C_bb)
-    keep = new <= old
-    R = np.where(keep[..., None, None], R_new, st.rot)
-    q = np.where(keep[..., None], q_new, q0)
+    R, q, old = _keep_lower(st.rot, q0, R_new, q_new, C_ab, C_bb)
     if global_search:
         axes, flat = _principal_axes(st)
         if sticks is None:
@@ -652,7 +665,7 @@ def update_motions(st: StickState, obs: Observations, *, n_procrustes: int = 1, 
     if hold is not None:  # rotations the frame cannot determine: interpolated, where that is better
         q_int = slerp_fill(q, ~hold)
         R_int = quat_to_rot(q_int)[..., :R.shape[-2], :]
-        better = hold & (_rotation_energy(R_int, C_ab, C_bb) < _rotation_energy(st.rot, C_ab, C_bb))
+        better = hold & (_rotation_energy(R_int, C_ab, C_bb) < old)
         R = np.where(hold[..., None, None], np.where(better[..., None, None], R_int, st.rot), R)
         q = np.where(hold[..., None], np.where(better[..., None], q_int, q0), q)
     if _mirror_tie is not None:  # mirror_alignment: tie-breaks by continuity (not monotone, see there)
