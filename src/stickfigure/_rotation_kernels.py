@@ -163,19 +163,19 @@ def _newton_at(R: np.ndarray, r: int, C_ab: np.ndarray, C_bb: np.ndarray, i: int
     return e_new if take else e_old
 
 
+@nb.njit(inline="always", **_JIT)
+def _newton_scratch(D: int) -> tuple:
+    # The scratch arrays of _newton_at, once per kernel call: six 3x3 (P, N, CP, H, K, Q), the
+    # trial rotation Rn (1, D, 3) (a batch of one for _energy_at) and the gradient g (3,).
+    return (np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
+            np.empty((3, 3)), np.empty((1, D, 3)), np.empty(3))
+
+
 @nb.njit(nb.void(_I3, _I3, _I3, _I1, _A3, _A1), **_JIT)
 def rotation_newton_step(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, e_old: np.ndarray,
                          R_out: np.ndarray, e_out: np.ndarray) -> None:
     """One damped Newton step on every rotation (geometry.rotation_newton_step), kept where it lowers the energy."""
-    D = R.shape[1]
-    P = np.empty((3, 3))
-    N = np.empty((3, 3))
-    CP = np.empty((3, 3))
-    H = np.empty((3, 3))
-    K = np.empty((3, 3))
-    Q = np.empty((3, 3))
-    Rn = np.empty((1, D, 3))  # the trial rotation, as a batch of one for _energy_at
-    g = np.empty(3)
+    P, N, CP, H, K, Q, Rn, g = _newton_scratch(R.shape[1])
     for i in range(R.shape[0]):
         e_out[i] = _newton_at(R, i, C_ab, C_bb, i, e_old[i], R_out, i, P, N, CP, H, K, Q, Rn, g)
 
@@ -494,14 +494,7 @@ def best_rotations(R: np.ndarray, C_ab: np.ndarray, C_bb: np.ndarray, starts: np
     memory and its gathers and scatters per start.
     """
     D = R.shape[1]
-    P = np.empty((3, 3))
-    N = np.empty((3, 3))
-    CP = np.empty((3, 3))
-    H = np.empty((3, 3))
-    K = np.empty((3, 3))
-    Q = np.empty((3, 3))
-    Rn = np.empty((1, D, 3))
-    g = np.empty(3)
+    P, N, CP, H, K, Q, Rn, g = _newton_scratch(D)
     X = np.empty((1, D, 3))
     for i in range(R.shape[0]):
         for row in range(D):
